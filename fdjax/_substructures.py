@@ -1,0 +1,263 @@
+"""The three substructures of a ball-screw feed drive (paper Sec. 3.1, Figs. 8–9).
+
+* :class:`Screw` — the ball screw: geometry, material and lead (transmission ratio i_sc).
+* :class:`Rotary` (R) — motor rotor, coupling, screw torsion, rotational supports.
+* :class:`Axial` (A) — screw axial vibration with its thrust bearing(s).
+* :class:`Carriage` (S) — carriage axial motion and pitch on the guideway joints, with the nut,
+  the linear scale (coordinate 2) and the tool point (coordinate 3) at their heights.
+* :class:`NutJoint` — the screw–nut joint, axial stiffness k_ja and damping c_ja.
+
+Each substructure gives its exact receptances at the coordinates the coupling needs, and its
+dynamic stiffness as a dense matrix for direct assembly (used to prove the coupling's signs).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Complex, Float
+
+from . import _checks
+from ._rods import Rod, Support, line_stiffness, spring_stiffness, tridiagonal_receptance
+
+__all__ = ["Screw", "Rotary", "Axial", "Carriage", "NutJoint"]
+
+
+def _scalar(x) -> Array:
+    return jnp.asarray(x, dtype=jnp.float64)
+
+
+def _cplx(x) -> Array:
+    return jnp.asarray(x).astype(jnp.complex128)
+
+
+def _check_fields(obj, positive=(), nonnegative=(), finite=()):
+    cls = type(obj).__name__
+    for name in positive:
+        _checks.positive(getattr(obj, name), f"{cls}({name}=...)")
+    for name in nonnegative:
+        _checks.nonnegative(getattr(obj, name), f"{cls}({name}=...)")
+    for name in finite:
+        _checks.finite(getattr(obj, name), f"{cls}({name}=...)")
+
+
+def tridiagonal_dense(diag, off) -> Complex[Array, "... n n"]:
+    """Dense symmetric tridiagonal matrix from diagonal/off-diagonal lists (broadcast)."""
+    n = len(diag)
+    shape = jnp.broadcast_shapes(*[jnp.shape(d) for d in diag], *[jnp.shape(e) for e in off])
+    D = jnp.zeros((*shape, n, n), jnp.complex128)
+    for i in range(n):
+        D = D.at[..., i, i].set(jnp.broadcast_to(diag[i], shape))
+    for i in range(n - 1):
+        e = jnp.broadcast_to(off[i], shape)
+        D = D.at[..., i, i + 1].set(e).at[..., i + 1, i].set(e)
+    return D
+
+
+class Screw(eqx.Module):
+    """The ball screw: a uniform steel shaft in torsion and axial motion.
+
+    Attributes:
+        length: distance between the drive-end and free-end bearings L (m).
+        diameter: effective (root) diameter d (m) for both EA and GJ.
+        lead: lead p (m/rev); the transmission ratio is i_sc = p / 2π (m/rad).
+        youngs_modulus: E (Pa).  shear_modulus: G (Pa).  density: ρ (kg/m³).
+        retardation: Kelvin–Voigt retardation time β (s) of the screw material.
+        loss_factor: hysteretic loss factor η (frequency domain only).
+    """
+
+    length: Float[Array, ""] = eqx.field(converter=_scalar)
+    diameter: Float[Array, ""] = eqx.field(converter=_scalar)
+    lead: Float[Array, ""] = eqx.field(converter=_scalar)
+    youngs_modulus: Float[Array, ""] = eqx.field(converter=_scalar, default=2.06e11)
+    shear_modulus: Float[Array, ""] = eqx.field(converter=_scalar, default=7.93e10)
+    density: Float[Array, ""] = eqx.field(converter=_scalar, default=7850.0)
+    retardation: Float[Array, ""] = eqx.field(converter=_scalar, default=0.0)
+    loss_factor: Float[Array, ""] = eqx.field(converter=_scalar, default=0.0)
+
+    def __check_init__(self):
+        _check_fields(
+            self,
+            positive=("length", "diameter", "lead", "youngs_modulus", "shear_modulus", "density"),
+            nonnegative=("retardation", "loss_factor"),
+        )
+
+    @property
+    def ratio(self) -> Float[Array, ""]:
+        """Transmission ratio i_sc = lead / 2π (m/rad)."""
+        return self.lead / (2 * jnp.pi)
+
+    def torsion(self) -> Rod:
+        return Rod.torsion(
+            diameter=self.diameter, length=self.length, shear_modulus=self.shear_modulus,
+            density=self.density, loss_factor=self.loss_factor, retardation=self.retardation,
+        )
+
+    def axial(self) -> Rod:
+        return Rod.axial(
+            diameter=self.diameter, length=self.length, youngs_modulus=self.youngs_modulus,
+            density=self.density, loss_factor=self.loss_factor, retardation=self.retardation,
+        )
+
+
+class Rotary(eqx.Module):
+    """Subsystem R: motor rotor — coupling — screw in torsion, on rotational supports.
+
+    Line of nodes: motor rotor θ1 | coupling | screw drive end θ(0) | screw | nut θ(l) | screw |
+    free end θ(L).
+
+    Attributes:
+        motor_inertia: rotor inertia J_m incl. motor-side coupling hub (kg·m²).
+        motor_damping: motor viscous friction (N·m·s/rad).
+        coupling_stiffness, coupling_damping: torsional coupling (N·m/rad, N·m·s/rad).
+        drive_end_inertia: screw-side coupling hub, bearing rings, nuts (kg·m²).
+        drive_end_damping: rotational friction of the drive-end bearings (N·m·s/rad).
+        free_end_inertia, free_end_damping: the same at the free (floating) end.
+    """
+
+    motor_inertia: Float[Array, ""] = eqx.field(converter=_scalar)
+    coupling_stiffness: Float[Array, ""] = eqx.field(converter=_scalar)
+    coupling_damping: Float[Array, ""] = eqx.field(converter=_scalar, default=0.0)
+    motor_damping: Float[Array, ""] = eqx.field(converter=_scalar, default=0.0)
+    drive_end_inertia: Float[Array, ""] = eqx.field(converter=_scalar, default=0.0)
+    drive_end_damping: Float[Array, ""] = eqx.field(converter=_scalar, default=0.0)
+    free_end_inertia: Float[Array, ""] = eqx.field(converter=_scalar, default=0.0)
+    free_end_damping: Float[Array, ""] = eqx.field(converter=_scalar, default=0.0)
+
+    def __check_init__(self):
+        _check_fields(
+            self,
+            positive=("motor_inertia", "coupling_stiffness"),
+            nonnegative=(
+                "coupling_damping", "motor_damping", "drive_end_inertia", "drive_end_damping",
+                "free_end_inertia", "free_end_damping",
+            ),
+        )
+
+    def line(self, shaft: Rod, l, omega):
+        """Tridiagonal dynamic stiffness over (θ1, θ(0), θ(l), θ(L))."""
+        diag, off = line_stiffness(
+            shaft, omega, [jnp.zeros(()), l, shaft.length],
+            [Support(0.0, self.drive_end_damping, self.drive_end_inertia), None,
+             Support(0.0, self.free_end_damping, self.free_end_inertia)],
+        )
+        kc = spring_stiffness(self.coupling_stiffness, self.coupling_damping, omega)
+        w = _cplx(omega)
+        motor = kc - w * w * _cplx(self.motor_inertia) + 1j * w * _cplx(self.motor_damping)
+        return [motor, diag[0] + kc, *diag[1:]], [-kc, *off]
+
+    def receptance(self, shaft: Rod, l, omega):
+        """(h_11, h_1l, h_ll): motor and nut-point rotation per torque (rad/(N·m))."""
+        diag, off = self.line(shaft, l, omega)
+        return tuple(tridiagonal_receptance(diag, off, [(0, 0), (0, 2), (2, 2)]))
+
+
+class Axial(eqx.Module):
+    """Subsystem A: the screw in axial motion on its thrust bearing(s).
+
+    Line of nodes: drive end u(0) (thrust bearing) | screw | nut u(l) | screw | free end u(L).
+
+    Attributes:
+        drive_end_stiffness, drive_end_damping: thrust bearing pair (N/m, N·s/m).
+        free_end_stiffness, free_end_damping: free-end bearing; 0 for a floating (fixed–free)
+            screw, positive for a fixed–fixed (pre-tensioned) arrangement.
+        drive_end_mass: bearing inner rings, lock nut (kg).
+    """
+
+    drive_end_stiffness: Float[Array, ""] = eqx.field(converter=_scalar)
+    drive_end_damping: Float[Array, ""] = eqx.field(converter=_scalar, default=0.0)
+    free_end_stiffness: Float[Array, ""] = eqx.field(converter=_scalar, default=0.0)
+    free_end_damping: Float[Array, ""] = eqx.field(converter=_scalar, default=0.0)
+    drive_end_mass: Float[Array, ""] = eqx.field(converter=_scalar, default=0.0)
+
+    def __check_init__(self):
+        _check_fields(
+            self,
+            positive=("drive_end_stiffness",),
+            nonnegative=(
+                "drive_end_damping", "free_end_stiffness", "free_end_damping", "drive_end_mass",
+            ),
+        )
+
+    def line(self, rod: Rod, l, omega):
+        """Tridiagonal dynamic stiffness over (u(0), u(l), u(L))."""
+        return line_stiffness(
+            rod, omega, [jnp.zeros(()), l, rod.length],
+            [Support(self.drive_end_stiffness, self.drive_end_damping, self.drive_end_mass), None,
+             Support(self.free_end_stiffness, self.free_end_damping, 0.0)],
+        )
+
+    def receptance(self, rod: Rod, l, omega):
+        """h_ll: axial displacement of the screw at the nut per axial force (m/N)."""
+        diag, off = self.line(rod, l, omega)
+        return tridiagonal_receptance(diag, off, [(1, 1)])[0]
+
+
+class Carriage(eqx.Module):
+    """Subsystem S: the carriage (table) as a rigid body in axial motion x_c and pitch ψ.
+
+    A point at height h above the pitch centre moves x = x_c + h ψ, so the receptance between
+    points a and b is ``h_ab = 1/(−ω²m + iωc_x) + h_a h_b /(k_ψ − ω²J + iωc_ψ)``.
+
+    Attributes:
+        mass: carriage with table and workpiece (kg).
+        pitch_inertia: about the pitch centre (kg·m²).
+        axial_damping: equivalent viscous friction of the guideways (N·s/m).
+        pitch_stiffness: k_ψ of the guideway blocks (N·m/rad) ≈ k_block · Σ (block offset)².
+        pitch_damping: c_ψ (N·m·s/rad).
+        nut_height, scale_height, tool_height: heights of the nut axis, the linear scale
+            (coordinate 2) and the tool point (coordinate 3) above the pitch centre (m).
+    """
+
+    mass: Float[Array, ""] = eqx.field(converter=_scalar)
+    pitch_inertia: Float[Array, ""] = eqx.field(converter=_scalar)
+    pitch_stiffness: Float[Array, ""] = eqx.field(converter=_scalar)
+    axial_damping: Float[Array, ""] = eqx.field(converter=_scalar, default=0.0)
+    pitch_damping: Float[Array, ""] = eqx.field(converter=_scalar, default=0.0)
+    nut_height: Float[Array, ""] = eqx.field(converter=_scalar, default=0.0)
+    scale_height: Float[Array, ""] = eqx.field(converter=_scalar, default=0.0)
+    tool_height: Float[Array, ""] = eqx.field(converter=_scalar, default=0.0)
+
+    def __check_init__(self):
+        _check_fields(
+            self,
+            positive=("mass", "pitch_inertia", "pitch_stiffness"),
+            nonnegative=("axial_damping", "pitch_damping"),
+            finite=("nut_height", "scale_height", "tool_height"),
+        )
+
+    @property
+    def heights(self) -> Float[Array, "3"]:
+        """Heights of (nut, scale, tool)."""
+        return jnp.stack([self.nut_height, self.scale_height, self.tool_height])
+
+    def modal_stiffness(self, omega):
+        """Dynamic stiffness of the axial and pitch coordinates (diagonal)."""
+        w = _cplx(omega)
+        axial = -w * w * _cplx(self.mass) + 1j * w * _cplx(self.axial_damping)
+        pitch = (
+            _cplx(self.pitch_stiffness) - w * w * _cplx(self.pitch_inertia)
+            + 1j * w * _cplx(self.pitch_damping)
+        )
+        return axial, pitch
+
+    def receptance(self, omega) -> Complex[Array, "... 3 3"]:
+        """Receptance over (x_n, x_2, x_3) per axial force at those points (m/N)."""
+        axial, pitch = self.modal_stiffness(omega)
+        h = _cplx(self.heights)
+        return (1.0 / axial)[..., None, None] + (1.0 / pitch)[..., None, None] * (
+            h[:, None] * h[None, :]
+        )
+
+
+class NutJoint(eqx.Module):
+    """The screw–nut joint: axial stiffness k_ja (N/m) and damping c_ja (N·s/m) (paper Eq. 1)."""
+
+    stiffness: Float[Array, ""] = eqx.field(converter=_scalar)
+    damping: Float[Array, ""] = eqx.field(converter=_scalar, default=0.0)
+
+    def __check_init__(self):
+        _check_fields(self, positive=("stiffness",), nonnegative=("damping",))
+
+    def dynamic_stiffness(self, omega):
+        return spring_stiffness(self.stiffness, self.damping, omega)
