@@ -10,3 +10,27 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 __version__ = "0.1.0"
+
+from ._coupling import (
+    couple as couple,
+    joint_receptance as joint_receptance,
+)
+from ._drive import (
+    INPUTS as INPUTS,
+    OUTPUTS as OUTPUTS,
+    BallScrewDrive as BallScrewDrive,
+    reference_drive as reference_drive,
+)
+from ._lumped import (
+    LumpedModel as LumpedModel,
+    chain_model as chain_model,
+    three_mass as three_mass,
+)
+from ._rods import Rod as Rod, Support as Support, rod_receptance as rod_receptance
+from ._substructures import (
+    Axial as Axial,
+    Carriage as Carriage,
+    NutJoint as NutJoint,
+    Rotary as Rotary,
+    Screw as Screw,
+)

@@ -6,7 +6,7 @@ freedom ``u``.  Interfaces are linear constraints on the *deformation* of the jo
     Δ = B u,
 
 where each row of the signed, scaled Boolean matrix ``B`` describes one joint.  A compliant joint
-with receptance ``Y_j`` (e.g. ``1/(k + iωc)``) carries the interface force ``λ = -Y_j⁻¹ Δ``;
+with receptance ``Y_j`` (e.g. ``1/(k + iωc)``) carries the interface force ``λ = −Y_j⁻¹ Δ``;
 eliminating ``λ`` gives the coupled receptance
 
     Y_c = Y − Y Bᵀ (B Y Bᵀ + Y_j)⁻¹ B Y.
@@ -19,11 +19,35 @@ carriage at the nut): the bracket in Eq. (1) is ``B Y Bᵀ + 1/(k_ja + iωc_ja)`
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Complex, Float
 
-from ._linalg import small_solve
+from . import _checks
+from ._linalg import Entries, add, entries, from_entries, inv_entries, matmul_entries, mul
 
-__all__ = ["couple", "block_diagonal", "joint_receptance"]
+__all__ = ["couple", "couple_entries", "block_diagonal", "joint_receptance"]
+
+
+def couple_entries(Y: Entries, B: Entries, joint: Entries | None = None) -> Entries:
+    """LM-FBS on matrices stored as nested lists of entry arrays (see ``fdjax._linalg``).
+
+    Structural zeros (the Python int 0) in ``Y``, ``B`` or ``joint`` are skipped at trace time,
+    so a block-diagonal ``Y`` and a sparse ``B`` cost only their non-zero entries.
+    """
+    n, m = len(Y), len(B)
+    Bt = [[B[k][i] for k in range(m)] for i in range(n)]
+    YBt = matmul_entries(Y, Bt)  # n × m
+    BY = matmul_entries(B, Y)  # m × n
+    S = matmul_entries(BY, Bt)  # m × m
+    if joint is not None:
+        S = [[add(S[k][q], joint[k][q]) for q in range(m)] for k in range(m)]
+    X = matmul_entries(inv_entries(S), BY)  # S⁻¹ B Y, m × n
+    corr = matmul_entries(YBt, X)
+    return [[add(Y[i][j], _neg(corr[i][j])) for j in range(n)] for i in range(n)]
+
+
+def _neg(x):
+    return 0 if isinstance(x, int) and x == 0 else -x
 
 
 def couple(
@@ -39,8 +63,8 @@ def couple(
         receptance: uncoupled (block-diagonal) receptance ``Y``, complex, shape ``(..., n, n)``;
             leading axes (frequency, position, ...) are batch axes.
         interface: signed, scaled Boolean matrix ``B`` of shape ``(m, n)``; row ``k`` gives the
-            deformation of joint ``k`` as ``Δ_k = Σ_i B_ki u_i``. Scaling carries transmission
-            ratios, e.g. ``-i_sc`` for a screw rotation seen at the nut.
+            deformation of joint ``k`` as ``Δ_k = Σ_i B_ki u_i``.  Scaling carries transmission
+            ratios, e.g. ``−i_sc`` for a screw rotation seen at the nut.
         joint: receptance of the joints ``Y_j`` (``(..., m, m)``, broadcast against the batch),
             ``None`` for rigid joints.
 
@@ -50,8 +74,7 @@ def couple(
     Y = jnp.asarray(receptance)
     if Y.ndim < 2 or Y.shape[-1] != Y.shape[-2]:
         raise ValueError(f"`couple(receptance=...)` must have shape (..., n, n), got {Y.shape}")
-    if not jnp.issubdtype(Y.dtype, jnp.complexfloating):
-        Y = Y.astype(jnp.complex128)
+    Y = Y.astype(jnp.complex128)
     B = jnp.asarray(interface)
     if B.ndim == 1:
         B = B[None, :]
@@ -59,36 +82,33 @@ def couple(
         raise ValueError(
             f"`couple(interface=...)` must have shape (m, {Y.shape[-1]}), got {B.shape}"
         )
-    B = B.astype(Y.dtype)
     m = B.shape[0]
-    # Products with the (small, constant) B are written as broadcast sums so XLA fuses them
-    # with the surrounding elementwise work instead of issuing many tiny batched dots.
-    YBt = jnp.sum(Y[..., :, None, :] * B[None, :, :], axis=-1)  # (..., n, m)
-    BY = jnp.sum(B[:, :, None] * Y[..., None, :, :], axis=-2)  # (..., m, n)
-    BYBt = jnp.sum(BY[..., :, None, :] * B[None, :, :], axis=-1)  # (..., m, m)
-    S = BYBt if joint is None else BYBt + jnp.asarray(joint).astype(Y.dtype)
-    if S.shape[-2:] != (m, m):
-        raise ValueError(f"`couple(joint=...)` must have shape (..., {m}, {m}), got {S.shape}")
-    X = small_solve(S, BY)  # (..., m, n) = S⁻¹ B Y
-    return Y - jnp.sum(YBt[..., :, :, None] * X[..., None, :, :], axis=-2)
+    Bc = B.astype(jnp.complex128)
+    Be = [[Bc[k, i] for i in range(B.shape[1])] for k in range(m)]
+    if _checks.is_concrete(B):  # exact zeros of a concrete B are structural
+        Bn = np.asarray(B)
+        Be = [[0 if Bn[k, i] == 0 else Be[k][i] for i in range(B.shape[1])] for k in range(m)]
+    Je = None
+    if joint is not None:
+        J = jnp.asarray(joint).astype(jnp.complex128)
+        if J.ndim < 2 or J.shape[-2:] != (m, m):
+            raise ValueError(f"`couple(joint=...)` must have shape (..., {m}, {m}), got {J.shape}")
+        Je = entries(J)
+    out = couple_entries(entries(Y), Be, Je)
+    batch = Y.shape[:-2] if joint is None else jnp.broadcast_shapes(Y.shape[:-2], J.shape[:-2])
+    return from_entries(out, shape=batch, dtype=jnp.complex128)
 
 
-def block_diagonal(*blocks: Complex[Array, "*batch ni ni"]) -> Complex[Array, "*batch n n"]:
-    """Stack batched square blocks into one block-diagonal array (leading axes broadcast)."""
-    blocks = [jnp.asarray(b) for b in blocks]
-    for k, b in enumerate(blocks):
-        if b.ndim < 2 or b.shape[-1] != b.shape[-2]:
-            raise ValueError(f"`block_diagonal` block {k} must be (..., n, n), got {b.shape}")
-    same = len({b.dtype for b in blocks}) == 1
-    dtype = blocks[0].dtype if same else jnp.complex128
-    batch = jnp.broadcast_shapes(*[b.shape[:-2] for b in blocks])
-    n = sum(b.shape[-1] for b in blocks)
-    out = jnp.zeros((*batch, n, n), dtype)
+def block_diagonal(*blocks: Entries) -> Entries:
+    """Block-diagonal matrix of entry-list blocks, off-diagonal blocks as structural zeros."""
+    n = sum(len(b) for b in blocks)
+    out = [[0] * n for _ in range(n)]
     i = 0
     for b in blocks:
-        k = b.shape[-1]
-        out = out.at[..., i : i + k, i : i + k].set(jnp.broadcast_to(b, (*batch, k, k)).astype(dtype))
-        i += k
+        for r, row in enumerate(b):
+            for c, x in enumerate(row):
+                out[i + r][i + c] = x
+        i += len(b)
     return out
 
 

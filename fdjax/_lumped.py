@@ -8,7 +8,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Complex, Float
 
 from . import _checks
-from ._linalg import small_inv
+from ._linalg import entries, inv_entries, small_inv, stack_entries
 
 __all__ = ["LumpedModel", "chain_model", "three_mass"]
 
@@ -73,7 +73,7 @@ class LumpedModel(eqx.Module):
         """Receptance matrix ``H[f, i, j] = x_i / F_j`` (m/N) on a frequency grid in Hz."""
         freq_hz = _checks.frequency_grid(freq_hz, "LumpedModel.frf(freq_hz=...)")
         return _checks.finite_output(
-            _frf_jit(self, freq_hz), "LumpedModel.frf(freq_hz=...)"
+            stack_entries(_frf_entries(self, freq_hz)), "LumpedModel.frf(freq_hz=...)"
         )
 
     def modes(self) -> tuple[Float[Array, " n"], Float[Array, "n n"]]:
@@ -90,8 +90,8 @@ class LumpedModel(eqx.Module):
 
 
 @eqx.filter_jit
-def _frf_jit(model: LumpedModel, freq_hz):
-    return model.receptance(2 * jnp.pi * freq_hz)
+def _frf_entries(model: LumpedModel, freq_hz):
+    return inv_entries(entries(model.dynamic_stiffness(2 * jnp.pi * freq_hz)))
 
 
 def chain_model(

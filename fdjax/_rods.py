@@ -22,6 +22,7 @@ from collections.abc import Sequence
 
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Complex, Float
 
 from . import _checks
@@ -100,17 +101,20 @@ class Rod(eqx.Module):
         w = _cplx(omega)
         return _cplx(self.stiffness) * (1 + 1j * (_cplx(self.loss_factor) + w * _cplx(self.retardation)))
 
+    def impedance(self, omega) -> tuple[Complex[Array, "..."], Complex[Array, "..."]]:
+        """``(κZ*, κ)``: wave impedance ``κZ* = ω√(μZ*)`` and wavenumber ``κ = ω√(μ/Z*)``."""
+        w = _cplx(omega)
+        zs = self.complex_stiffness(omega)
+        mu = _cplx(self.inertia)
+        return w * jnp.sqrt(mu * zs), w * jnp.sqrt(mu / zs)
+
     def segment_stiffness(self, omega, length) -> tuple[Complex[Array, "..."], Complex[Array, "..."]]:
         """Diagonal and off-diagonal entries of ``D_seg`` for a segment of the given length.
 
-        ``d = κZ* cot(κa)``, ``e = −κZ*/sin(κa)`` with ``κZ* = ω √(μ Z*)``.
+        ``d = κZ* cot(κa)``, ``e = −κZ*/sin(κa)``.
         """
-        w = _cplx(omega)
-        zs = self.complex_stiffness(omega)
-        kz = w * jnp.sqrt(_cplx(self.inertia) * zs)  # κ Z*
-        ka = w * jnp.sqrt(_cplx(self.inertia) / zs) * _cplx(length)  # κ a
-        s = jnp.sin(ka)
-        return kz * jnp.cos(ka) / s, -kz / s
+        kz, k = self.impedance(omega)
+        return _segment(kz, jnp.exp(1j * k * _cplx(length)))
 
     def frf(
         self,
@@ -156,6 +160,17 @@ class Support(eqx.Module):
         return _cplx(self.stiffness) + 1j * w * _cplx(self.damping) - w * w * _cplx(self.mass)
 
 
+def _segment(kz, phase):
+    """Segment entries from the phase factor ``E = e^{iκa}``.
+
+    cot(κa) = i(E² + 1)/(E² − 1) and 1/sin(κa) = 2iE/(E² − 1): one complex exponential per
+    segment instead of a complex sine and cosine.
+    """
+    e2 = phase * phase
+    den = 1.0 / (e2 - 1.0)
+    return 1j * kz * (e2 + 1.0) * den, -2j * kz * phase * den
+
+
 def spring_stiffness(stiffness, damping, omega) -> Complex[Array, "..."]:
     """Dynamic stiffness ``k + iωc`` of a massless spring–damper element between two nodes."""
     return _cplx(stiffness) + 1j * _cplx(omega) * _cplx(damping)
@@ -199,15 +214,23 @@ def line_stiffness(
     nodes_m: Sequence,
     supports: Sequence[Support | None],
 ) -> tuple[list, list]:
-    """Tridiagonal dynamic stiffness of a rod split at increasing nodes ``0 = x_0 < … < x_{n−1} = L``.
+    """Tridiagonal dynamic stiffness of a rod split at nodes ``0 = x_0 < x_1 < … < x_{n−1} = L``.
 
-    ``supports[i]`` (or ``None``) is attached at node i. Returns the diagonal and off-diagonal lists.
+    ``nodes_m[0]`` is taken as 0 and ``nodes_m[-1]`` as ``rod.length``; ``supports[i]`` (or
+    ``None``) is attached at node i.  Returns the diagonal and off-diagonal lists.  The segment
+    phase factors are ratios ``e^{iκx_{i+1}}/e^{iκx_i}``, so each interior node costs one complex
+    exponential and the end nodes depend on frequency only.
     """
     n = len(nodes_m)
+    kz, k = rod.impedance(omega)
+    phases = [jnp.ones((), jnp.complex128)]
+    phases += [jnp.exp(1j * k * _cplx(x)) for x in nodes_m[1:-1]]
+    phases.append(jnp.exp(1j * k * _cplx(rod.length)))
     diag = [jnp.zeros((), jnp.complex128) for _ in range(n)]
     off = []
     for i in range(n - 1):
-        d, e = rod.segment_stiffness(omega, nodes_m[i + 1] - nodes_m[i])
+        seg = phases[i + 1] if i == 0 else phases[i + 1] / phases[i]
+        d, e = _segment(kz, seg)
         diag[i] = diag[i] + d
         diag[i + 1] = diag[i + 1] + d
         off.append(e)
@@ -235,26 +258,22 @@ def rod_receptance(
     omega = jnp.asarray(omega, jnp.float64)[:, None]
     pts = jnp.atleast_1d(jnp.asarray(points_m, jnp.float64))
     p = pts.shape[0]
-    order = [int(i) for i in jnp.argsort(pts)] if _checks.is_concrete(pts) else list(range(p))
-    # Node list: 0, the points (ends merged if they coincide exactly is not supported under
-    # tracing, so points must be strictly inside when traced), L.
-    xs = [jnp.zeros(()), *[pts[i] for i in order], rod.length]
-    idx = {order[k]: k + 1 for k in range(p)}
-    # Merge coincident end points (concrete case) to avoid zero-length segments.
-    if _checks.is_concrete(pts):
-        keep = [0]
-        remap = {0: 0}
-        for k in range(1, len(xs)):
-            if float(xs[k]) - float(xs[keep[-1]]) <= 0:
-                remap[k] = len(keep) - 1
-            else:
-                keep.append(k)
-                remap[k] = len(keep) - 1
-        xs = [xs[k] for k in keep]
-        idx = {i: remap[k] for i, k in idx.items()}
+    if _checks.is_concrete(pts) and _checks.is_concrete(rod.length):
+        # Concrete points: sort, merge duplicates, and map points on the ends to the end nodes.
+        L = float(rod.length)
+        pn = np.asarray(pts)
+        interior = sorted({float(x) for x in pn if 0.0 < x < L})
+        xs = [jnp.zeros(()), *[pts[int(np.flatnonzero(pn == x)[0])] for x in interior], rod.length]
         last = len(xs) - 1
+        idx = {
+            i: 0 if pn[i] <= 0.0 else last if pn[i] >= L else 1 + interior.index(float(pn[i]))
+            for i in range(p)
+        }
     else:
+        # Traced points: taken as strictly increasing interior points (no zero-length segment).
+        xs = [jnp.zeros(()), *[pts[i] for i in range(p)], rod.length]
         last = len(xs) - 1
+        idx = {i: i + 1 for i in range(p)}
     supports = [None] * len(xs)
     supports[0] = left
     supports[last] = right

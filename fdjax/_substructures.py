@@ -241,13 +241,12 @@ class Carriage(eqx.Module):
         )
         return axial, pitch
 
-    def receptance(self, omega) -> Complex[Array, "... 3 3"]:
-        """Receptance over (x_n, x_2, x_3) per axial force at those points (m/N)."""
+    def receptance(self, omega) -> list[list[Complex[Array, "..."]]]:
+        """Receptance over (x_n, x_2, x_3) per axial force at those points (m/N), as entries."""
         axial, pitch = self.modal_stiffness(omega)
-        h = _cplx(self.heights)
-        return (1.0 / axial)[..., None, None] + (1.0 / pitch)[..., None, None] * (
-            h[:, None] * h[None, :]
-        )
+        ya, yp = 1.0 / axial, 1.0 / pitch
+        h = [_cplx(x) for x in (self.nut_height, self.scale_height, self.tool_height)]
+        return [[ya + yp * (h[i] * h[j]) for j in range(3)] for i in range(3)]
 
 
 class NutJoint(eqx.Module):

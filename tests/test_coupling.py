@@ -1,0 +1,74 @@
+"""LM-FBS coupling: Y_c = Y − Y Bᵀ (B Y Bᵀ + Y_j)⁻¹ B Y."""
+
+import jax.numpy as jnp
+import numpy as np
+
+import fdjax
+
+FREQ = np.linspace(20.0, 6000.0, 1500)
+
+
+def _rod(L):
+    return fdjax.Rod.axial(diameter=0.03, length=L, retardation=2e-6)
+
+
+def _two_rods_uncoupled(L1, L2):
+    Y1 = np.asarray(_rod(L1).frf(FREQ, [0.0, L1]))
+    Y2 = np.asarray(_rod(L2).frf(FREQ, [0.0, L2]))
+    Y = np.zeros((FREQ.size, 4, 4), complex)
+    Y[:, :2, :2], Y[:, 2:, 2:] = Y1, Y2
+    return Y
+
+
+def test_two_free_free_rods_rigidly_coupled_equal_one_rod():
+    L1, L2 = 0.45, 0.8
+    Y = _two_rods_uncoupled(L1, L2)
+    B = np.array([[0.0, 1.0, -1.0, 0.0]])  # joint: end of rod 1 meets start of rod 2
+    Yc = np.asarray(fdjax.couple(jnp.asarray(Y), B))
+    ref = np.asarray(_rod(L1 + L2).frf(FREQ, [0.0, L1, L1 + L2]))
+    sel = [0, 1, 3]  # (start, joint (rod-1 side), far end)
+    np.testing.assert_allclose(Yc[:, sel][:, :, sel], ref, rtol=1e-9, atol=0)
+    # both sides of a rigid joint move together
+    np.testing.assert_allclose(Yc[:, 1], Yc[:, 2], rtol=1e-9)
+
+
+def test_stiff_joint_approaches_rigid_at_first_order():
+    L1, L2 = 0.45, 0.8
+    Y = jnp.asarray(_two_rods_uncoupled(L1, L2))
+    B = np.array([[0.0, 1.0, -1.0, 0.0]])
+    rigid = np.asarray(fdjax.couple(Y, B))
+    errs = []
+    stiffness = np.array([1e10, 1e11, 1e12])
+    for k in stiffness:
+        Yj = jnp.full((FREQ.size, 1, 1), 1.0 / k, jnp.complex128)
+        Yc = np.asarray(fdjax.couple(Y, B, Yj))
+        errs.append(np.median(np.abs(Yc[:, 0, 3] - rigid[:, 0, 3]) / np.abs(rigid[:, 0, 3])))
+    order = -np.polyfit(np.log(stiffness), np.log(errs), 1)[0]
+    assert abs(order - 1.0) < 0.05  # error ∝ joint compliance 1/k
+
+
+def test_coupled_receptance_is_reciprocal_and_matches_numpy():
+    rng = np.random.default_rng(0)
+    n, m = 5, 2
+    A = rng.normal(size=(7, n, n)) + 1j * rng.normal(size=(7, n, n))
+    Y = A + np.swapaxes(A, -1, -2)  # reciprocal (symmetric) substructure receptances
+    B = rng.normal(size=(m, n))
+    J = np.eye(m) * (0.3 + 0.1j)
+    Yc = np.asarray(fdjax.couple(jnp.asarray(Y), B, jnp.asarray(J)))
+    ref = Y - Y @ B.T @ np.linalg.inv(B @ Y @ B.T + J) @ B @ Y
+    np.testing.assert_allclose(Yc, ref, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(Yc, np.swapaxes(Yc, -1, -2), rtol=1e-10, atol=1e-12)
+
+
+def test_three_mass_by_coupling_two_substructures():
+    # m1 alone and the (m2, m3) chain joined by the compliant joint k1, c1 reproduce the 3M2S
+    w = 2 * np.pi * np.linspace(5.0, 300.0, 400)
+    m1 = fdjax.LumpedModel([[100.0]], [[0.0]], [[0.0]])
+    rest = fdjax.chain_model([150.0, 50.0], [2e7], [4e2])
+    Y = np.zeros((w.size, 3, 3), complex)
+    Y[:, :1, :1] = np.asarray(m1.receptance(w))
+    Y[:, 1:, 1:] = np.asarray(rest.receptance(w))
+    joint = np.asarray(fdjax.joint_receptance(5e7, 1e3, w))[:, None, None]
+    Yc = np.asarray(fdjax.couple(jnp.asarray(Y), np.array([[-1.0, 1.0, 0.0]]), jnp.asarray(joint)))
+    ref = np.asarray(fdjax.three_mass().receptance(w))
+    np.testing.assert_allclose(Yc, ref, rtol=1e-9)
