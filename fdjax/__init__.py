@@ -34,3 +34,11 @@ from ._substructures import (
     Rotary as Rotary,
     Screw as Screw,
 )
+from ._filters import (
+    MCM as MCM,
+    AbstractFilter as AbstractFilter,
+    DiscreteFilter as DiscreteFilter,
+    FilterStateSpace as FilterStateSpace,
+    NotchFilter as NotchFilter,
+    PeakFilter as PeakFilter,
+)

@@ -32,9 +32,15 @@ def fmt(value) -> str:
     return f"array(shape={arr.shape}, min={np.nanmin(arr):.6g}, max={np.nanmax(arr):.6g})"
 
 
-def _first_bad(arr: np.ndarray, ok: np.ndarray):
-    bad = np.asarray(arr)[~np.broadcast_to(ok, np.shape(arr))]
-    return bad.flat[0] if bad.size else arr
+def _describe_bad(arr: np.ndarray, good: np.ndarray) -> str:
+    """The offending value (and its index when ``arr`` is not a scalar)."""
+    if arr.ndim == 0 or good.ndim == 0:
+        return fmt(arr)
+    bad = np.argwhere(~np.broadcast_to(good, arr.shape))
+    idx = tuple(int(i) for i in bad[0])
+    where = idx[0] if len(idx) == 1 else idx
+    more = f" and {len(bad) - 1} more" if len(bad) > 1 else ""
+    return f"{fmt(arr[idx])} at index {where}{more}"
 
 
 def check(
@@ -53,8 +59,7 @@ def check(
         with np.errstate(invalid="ignore"):
             good = np.asarray(ok(arr))
         if not np.all(good):
-            shown = arr if arr.size <= 6 else _first_bad(arr, good)
-            raise ValueError(f"`{where}` must be {expected}, got {fmt(shown)}")
+            raise ValueError(f"`{where}` must be {expected}, got {_describe_bad(arr, good)}")
         return value
     good = jnp.all(ok(value))
     return eqx.error_if(value, jnp.logical_not(good), f"`{where}` must be {expected}")
@@ -111,3 +116,29 @@ def finite_output(value, where: str):
         jnp.logical_not(jnp.all(jnp.isfinite(value))),
         f"`{where}` produced a non-finite result; check the parameters for NaN/inf",
     )
+
+
+def _field(test, where: str, **kwargs):
+    def convert(x):
+        return test(jnp.asarray(x, dtype=jnp.float64), where)
+
+    return eqx.field(converter=convert, **kwargs)
+
+
+def positive_field(where: str, **kwargs):
+    """A float64 Module field that must be finite and positive.
+
+    The check runs in the field's converter, so it also guards values traced inside
+    ``jit``/``vmap`` (the stored leaf carries the ``eqx.error_if``).
+    """
+    return _field(positive, where, **kwargs)
+
+
+def nonnegative_field(where: str, **kwargs):
+    """A float64 Module field that must be finite and non-negative (see ``positive_field``)."""
+    return _field(nonnegative, where, **kwargs)
+
+
+def finite_field(where: str, **kwargs):
+    """A float64 Module field that must be finite (see ``positive_field``)."""
+    return _field(finite, where, **kwargs)

@@ -87,14 +87,14 @@ class BallScrewDrive(eqx.Module):
         s = self.carriage.receptance(omega)
         return r, a, s
 
-    def coupled_receptance(self, position_m, omega) -> list[list[Complex[Array, "..."]]]:
+    def coupled_receptance(self, position_m, omega) -> list[list[Complex[Array, ...]]]:
         """Coupled receptance over (θ1, θ_l, u_l, x_n, x2, x3) by LM-FBS (paper Eq. 1).
 
         Returned as a 6×6 nested list of broadcast arrays (see ``fdjax._linalg``).
         """
         (h11, h1l, hll), ha, hs = self.substructure_receptances(position_m, omega)
         Y = block_diagonal([[h11, h1l], [h1l, hll]], [[ha]], hs)
-        B = [[0, -self.screw.ratio, -1.0, 1.0, 0, 0]]
+        B = [[0, -self.screw.ratio.astype(jnp.complex128), -1.0, 1.0, 0, 0]]
         joint = [[1.0 / self.nut.dynamic_stiffness(omega)]]
         return couple_entries(Y, B, joint)
 
@@ -102,7 +102,7 @@ class BallScrewDrive(eqx.Module):
         """H_M at broadcastable table positions (m) and angular frequencies (rad/s), unchecked."""
         return from_entries(self.receptance_entries(position_m, omega))
 
-    def receptance_entries(self, position_m, omega) -> list[list[Complex[Array, "..."]]]:
+    def receptance_entries(self, position_m, omega) -> list[list[Complex[Array, ...]]]:
         """H_M as a 3×2 nested list of arrays (no interleaving; the fastest form in a jit)."""
         Yc = self.coupled_receptance(position_m, omega)
         return [[Yc[i][j] for j in (0, 5)] for i in (0, 4, 5)]
@@ -173,7 +173,8 @@ class BallScrewDrive(eqx.Module):
         pos = jnp.atleast_1d(jnp.asarray(position_m, dtype=jnp.float64))
         if pos.ndim != 1:
             raise ValueError(
-                f"`BallScrewDrive.frf(position_m=...)` must be a scalar or 1-D, got shape {pos.shape}"
+                "`BallScrewDrive.frf(position_m=...)` must be a scalar or 1-D, "
+                f"got shape {pos.shape}"
             )
         lo, hi = self.travel_m
         return _checks.check(

@@ -49,17 +49,11 @@ class Rod(eqx.Module):
         retardation: Kelvin–Voigt retardation time β (s): modal damping ratio ≈ βω/2.
     """
 
-    length: Float[Array, ""] = eqx.field(converter=_scalar)
-    stiffness: Float[Array, ""] = eqx.field(converter=_scalar)
-    inertia: Float[Array, ""] = eqx.field(converter=_scalar)
-    loss_factor: Float[Array, ""] = eqx.field(converter=_scalar, default=0.0)
-    retardation: Float[Array, ""] = eqx.field(converter=_scalar, default=0.0)
-
-    def __check_init__(self):
-        for name in ("length", "stiffness", "inertia"):
-            _checks.positive(getattr(self, name), f"Rod({name}=...)")
-        for name in ("loss_factor", "retardation"):
-            _checks.nonnegative(getattr(self, name), f"Rod({name}=...)")
+    length: Float[Array, ""] = _checks.positive_field("Rod(length=...)")
+    stiffness: Float[Array, ""] = _checks.positive_field("Rod(stiffness=...)")
+    inertia: Float[Array, ""] = _checks.positive_field("Rod(inertia=...)")
+    loss_factor: Float[Array, ""] = _checks.nonnegative_field("Rod(loss_factor=...)", default=0.0)
+    retardation: Float[Array, ""] = _checks.nonnegative_field("Rod(retardation=...)", default=0.0)
 
     @classmethod
     def axial(
@@ -72,7 +66,7 @@ class Rod(eqx.Module):
         loss_factor=0.0,
         retardation=0.0,
     ) -> Rod:
-        """Solid circular rod in axial motion: ``EA = E πd²/4``, ``ρA = ρ πd²/4`` (steel default)."""
+        """Solid circular rod in axial motion: ``EA = E πd²/4``, ``ρA = ρ πd²/4`` (steel)."""
         area = jnp.pi * _checks.positive(_scalar(diameter), "Rod.axial(diameter=...)") ** 2 / 4
         return cls(length, youngs_modulus * area, density * area, loss_factor, retardation)
 
@@ -96,19 +90,23 @@ class Rod(eqx.Module):
         """Undamped wave speed ``c = √(Z/μ)`` (m/s)."""
         return jnp.sqrt(self.stiffness / self.inertia)
 
-    def complex_stiffness(self, omega) -> Complex[Array, "..."]:
+    def complex_stiffness(self, omega) -> Complex[Array, ...]:
         """``Z*(ω) = Z (1 + iη + iωβ)``."""
         w = _cplx(omega)
-        return _cplx(self.stiffness) * (1 + 1j * (_cplx(self.loss_factor) + w * _cplx(self.retardation)))
+        return _cplx(self.stiffness) * (
+            1 + 1j * (_cplx(self.loss_factor) + w * _cplx(self.retardation))
+        )
 
-    def impedance(self, omega) -> tuple[Complex[Array, "..."], Complex[Array, "..."]]:
+    def impedance(self, omega) -> tuple[Complex[Array, ...], Complex[Array, ...]]:
         """``(κZ*, κ)``: wave impedance ``κZ* = ω√(μZ*)`` and wavenumber ``κ = ω√(μ/Z*)``."""
         w = _cplx(omega)
         zs = self.complex_stiffness(omega)
         mu = _cplx(self.inertia)
         return w * jnp.sqrt(mu * zs), w * jnp.sqrt(mu / zs)
 
-    def segment_stiffness(self, omega, length) -> tuple[Complex[Array, "..."], Complex[Array, "..."]]:
+    def segment_stiffness(
+        self, omega, length
+    ) -> tuple[Complex[Array, ...], Complex[Array, ...]]:
         """Diagonal and off-diagonal entries of ``D_seg`` for a segment of the given length.
 
         ``d = κZ* cot(κa)``, ``e = −κZ*/sin(κa)``.
@@ -147,15 +145,11 @@ class Support(eqx.Module):
         mass: kg or kg·m².
     """
 
-    stiffness: Float[Array, ""] = eqx.field(converter=_scalar, default=0.0)
-    damping: Float[Array, ""] = eqx.field(converter=_scalar, default=0.0)
-    mass: Float[Array, ""] = eqx.field(converter=_scalar, default=0.0)
+    stiffness: Float[Array, ""] = _checks.nonnegative_field("Support(stiffness=...)", default=0.0)
+    damping: Float[Array, ""] = _checks.nonnegative_field("Support(damping=...)", default=0.0)
+    mass: Float[Array, ""] = _checks.nonnegative_field("Support(mass=...)", default=0.0)
 
-    def __check_init__(self):
-        for name in ("stiffness", "damping", "mass"):
-            _checks.nonnegative(getattr(self, name), f"Support({name}=...)")
-
-    def dynamic_stiffness(self, omega) -> Complex[Array, "..."]:
+    def dynamic_stiffness(self, omega) -> Complex[Array, ...]:
         w = _cplx(omega)
         return _cplx(self.stiffness) + 1j * w * _cplx(self.damping) - w * w * _cplx(self.mass)
 
@@ -171,16 +165,16 @@ def _segment(kz, phase):
     return 1j * kz * (e2 + 1.0) * den, -2j * kz * phase * den
 
 
-def spring_stiffness(stiffness, damping, omega) -> Complex[Array, "..."]:
+def spring_stiffness(stiffness, damping, omega) -> Complex[Array, ...]:
     """Dynamic stiffness ``k + iωc`` of a massless spring–damper element between two nodes."""
     return _cplx(stiffness) + 1j * _cplx(omega) * _cplx(damping)
 
 
 def tridiagonal_receptance(
-    diag: Sequence[Complex[Array, "..."]],
-    off: Sequence[Complex[Array, "..."]],
+    diag: Sequence[Complex[Array, ...]],
+    off: Sequence[Complex[Array, ...]],
     pairs: Sequence[tuple[int, int]],
-) -> list[Complex[Array, "..."]]:
+) -> list[Complex[Array, ...]]:
     r"""Entries ``(D⁻¹)_ij`` of a symmetric tridiagonal dynamic stiffness, elementwise.
 
     With left Schur complements ``a_0 = d_0``, ``a_i = d_i − e_{i−1}²/a_{i−1}`` and right ones

@@ -31,16 +31,6 @@ def _cplx(x) -> Array:
     return jnp.asarray(x).astype(jnp.complex128)
 
 
-def _check_fields(obj, positive=(), nonnegative=(), finite=()):
-    cls = type(obj).__name__
-    for name in positive:
-        _checks.positive(getattr(obj, name), f"{cls}({name}=...)")
-    for name in nonnegative:
-        _checks.nonnegative(getattr(obj, name), f"{cls}({name}=...)")
-    for name in finite:
-        _checks.finite(getattr(obj, name), f"{cls}({name}=...)")
-
-
 def tridiagonal_dense(diag, off) -> Complex[Array, "... n n"]:
     """Dense symmetric tridiagonal matrix from diagonal/off-diagonal lists (broadcast)."""
     n = len(diag)
@@ -66,21 +56,18 @@ class Screw(eqx.Module):
         loss_factor: hysteretic loss factor η (frequency domain only).
     """
 
-    length: Float[Array, ""] = eqx.field(converter=_scalar)
-    diameter: Float[Array, ""] = eqx.field(converter=_scalar)
-    lead: Float[Array, ""] = eqx.field(converter=_scalar)
-    youngs_modulus: Float[Array, ""] = eqx.field(converter=_scalar, default=2.06e11)
-    shear_modulus: Float[Array, ""] = eqx.field(converter=_scalar, default=7.93e10)
-    density: Float[Array, ""] = eqx.field(converter=_scalar, default=7850.0)
-    retardation: Float[Array, ""] = eqx.field(converter=_scalar, default=0.0)
-    loss_factor: Float[Array, ""] = eqx.field(converter=_scalar, default=0.0)
-
-    def __check_init__(self):
-        _check_fields(
-            self,
-            positive=("length", "diameter", "lead", "youngs_modulus", "shear_modulus", "density"),
-            nonnegative=("retardation", "loss_factor"),
-        )
+    length: Float[Array, ""] = _checks.positive_field("Screw(length=...)")
+    diameter: Float[Array, ""] = _checks.positive_field("Screw(diameter=...)")
+    lead: Float[Array, ""] = _checks.positive_field("Screw(lead=...)")
+    youngs_modulus: Float[Array, ""] = _checks.positive_field(
+        "Screw(youngs_modulus=...)", default=2.06e11
+    )
+    shear_modulus: Float[Array, ""] = _checks.positive_field(
+        "Screw(shear_modulus=...)", default=7.93e10
+    )
+    density: Float[Array, ""] = _checks.positive_field("Screw(density=...)", default=7850.0)
+    retardation: Float[Array, ""] = _checks.nonnegative_field("Screw(retardation=...)", default=0.0)
+    loss_factor: Float[Array, ""] = _checks.nonnegative_field("Screw(loss_factor=...)", default=0.0)
 
     @property
     def ratio(self) -> Float[Array, ""]:
@@ -89,14 +76,22 @@ class Screw(eqx.Module):
 
     def torsion(self) -> Rod:
         return Rod.torsion(
-            diameter=self.diameter, length=self.length, shear_modulus=self.shear_modulus,
-            density=self.density, loss_factor=self.loss_factor, retardation=self.retardation,
+            diameter=self.diameter,
+            length=self.length,
+            shear_modulus=self.shear_modulus,
+            density=self.density,
+            loss_factor=self.loss_factor,
+            retardation=self.retardation,
         )
 
     def axial(self) -> Rod:
         return Rod.axial(
-            diameter=self.diameter, length=self.length, youngs_modulus=self.youngs_modulus,
-            density=self.density, loss_factor=self.loss_factor, retardation=self.retardation,
+            diameter=self.diameter,
+            length=self.length,
+            youngs_modulus=self.youngs_modulus,
+            density=self.density,
+            loss_factor=self.loss_factor,
+            retardation=self.retardation,
         )
 
 
@@ -115,31 +110,38 @@ class Rotary(eqx.Module):
         free_end_inertia, free_end_damping: the same at the free (floating) end.
     """
 
-    motor_inertia: Float[Array, ""] = eqx.field(converter=_scalar)
-    coupling_stiffness: Float[Array, ""] = eqx.field(converter=_scalar)
-    coupling_damping: Float[Array, ""] = eqx.field(converter=_scalar, default=0.0)
-    motor_damping: Float[Array, ""] = eqx.field(converter=_scalar, default=0.0)
-    drive_end_inertia: Float[Array, ""] = eqx.field(converter=_scalar, default=0.0)
-    drive_end_damping: Float[Array, ""] = eqx.field(converter=_scalar, default=0.0)
-    free_end_inertia: Float[Array, ""] = eqx.field(converter=_scalar, default=0.0)
-    free_end_damping: Float[Array, ""] = eqx.field(converter=_scalar, default=0.0)
-
-    def __check_init__(self):
-        _check_fields(
-            self,
-            positive=("motor_inertia", "coupling_stiffness"),
-            nonnegative=(
-                "coupling_damping", "motor_damping", "drive_end_inertia", "drive_end_damping",
-                "free_end_inertia", "free_end_damping",
-            ),
-        )
+    motor_inertia: Float[Array, ""] = _checks.positive_field("Rotary(motor_inertia=...)")
+    coupling_stiffness: Float[Array, ""] = _checks.positive_field("Rotary(coupling_stiffness=...)")
+    coupling_damping: Float[Array, ""] = _checks.nonnegative_field(
+        "Rotary(coupling_damping=...)", default=0.0
+    )
+    motor_damping: Float[Array, ""] = _checks.nonnegative_field(
+        "Rotary(motor_damping=...)", default=0.0
+    )
+    drive_end_inertia: Float[Array, ""] = _checks.nonnegative_field(
+        "Rotary(drive_end_inertia=...)", default=0.0
+    )
+    drive_end_damping: Float[Array, ""] = _checks.nonnegative_field(
+        "Rotary(drive_end_damping=...)", default=0.0
+    )
+    free_end_inertia: Float[Array, ""] = _checks.nonnegative_field(
+        "Rotary(free_end_inertia=...)", default=0.0
+    )
+    free_end_damping: Float[Array, ""] = _checks.nonnegative_field(
+        "Rotary(free_end_damping=...)", default=0.0
+    )
 
     def line(self, shaft: Rod, l, omega):
         """Tridiagonal dynamic stiffness over (θ1, θ(0), θ(l), θ(L))."""
         diag, off = line_stiffness(
-            shaft, omega, [jnp.zeros(()), l, shaft.length],
-            [Support(0.0, self.drive_end_damping, self.drive_end_inertia), None,
-             Support(0.0, self.free_end_damping, self.free_end_inertia)],
+            shaft,
+            omega,
+            [jnp.zeros(()), l, shaft.length],
+            [
+                Support(0.0, self.drive_end_damping, self.drive_end_inertia),
+                None,
+                Support(0.0, self.free_end_damping, self.free_end_inertia),
+            ],
         )
         kc = spring_stiffness(self.coupling_stiffness, self.coupling_damping, omega)
         w = _cplx(omega)
@@ -164,27 +166,31 @@ class Axial(eqx.Module):
         drive_end_mass: bearing inner rings, lock nut (kg).
     """
 
-    drive_end_stiffness: Float[Array, ""] = eqx.field(converter=_scalar)
-    drive_end_damping: Float[Array, ""] = eqx.field(converter=_scalar, default=0.0)
-    free_end_stiffness: Float[Array, ""] = eqx.field(converter=_scalar, default=0.0)
-    free_end_damping: Float[Array, ""] = eqx.field(converter=_scalar, default=0.0)
-    drive_end_mass: Float[Array, ""] = eqx.field(converter=_scalar, default=0.0)
-
-    def __check_init__(self):
-        _check_fields(
-            self,
-            positive=("drive_end_stiffness",),
-            nonnegative=(
-                "drive_end_damping", "free_end_stiffness", "free_end_damping", "drive_end_mass",
-            ),
-        )
+    drive_end_stiffness: Float[Array, ""] = _checks.positive_field("Axial(drive_end_stiffness=...)")
+    drive_end_damping: Float[Array, ""] = _checks.nonnegative_field(
+        "Axial(drive_end_damping=...)", default=0.0
+    )
+    free_end_stiffness: Float[Array, ""] = _checks.nonnegative_field(
+        "Axial(free_end_stiffness=...)", default=0.0
+    )
+    free_end_damping: Float[Array, ""] = _checks.nonnegative_field(
+        "Axial(free_end_damping=...)", default=0.0
+    )
+    drive_end_mass: Float[Array, ""] = _checks.nonnegative_field(
+        "Axial(drive_end_mass=...)", default=0.0
+    )
 
     def line(self, rod: Rod, l, omega):
         """Tridiagonal dynamic stiffness over (u(0), u(l), u(L))."""
         return line_stiffness(
-            rod, omega, [jnp.zeros(()), l, rod.length],
-            [Support(self.drive_end_stiffness, self.drive_end_damping, self.drive_end_mass), None,
-             Support(self.free_end_stiffness, self.free_end_damping, 0.0)],
+            rod,
+            omega,
+            [jnp.zeros(()), l, rod.length],
+            [
+                Support(self.drive_end_stiffness, self.drive_end_damping, self.drive_end_mass),
+                None,
+                Support(self.free_end_stiffness, self.free_end_damping, 0.0),
+            ],
         )
 
     def receptance(self, rod: Rod, l, omega):
@@ -209,25 +215,21 @@ class Carriage(eqx.Module):
             (coordinate 2) and the tool point (coordinate 3) above the pitch centre (m).
     """
 
-    mass: Float[Array, ""] = eqx.field(converter=_scalar)
-    pitch_inertia: Float[Array, ""] = eqx.field(converter=_scalar)
-    pitch_stiffness: Float[Array, ""] = eqx.field(converter=_scalar)
-    axial_damping: Float[Array, ""] = eqx.field(converter=_scalar, default=0.0)
-    pitch_damping: Float[Array, ""] = eqx.field(converter=_scalar, default=0.0)
-    nut_height: Float[Array, ""] = eqx.field(converter=_scalar, default=0.0)
-    scale_height: Float[Array, ""] = eqx.field(converter=_scalar, default=0.0)
-    tool_height: Float[Array, ""] = eqx.field(converter=_scalar, default=0.0)
-
-    def __check_init__(self):
-        _check_fields(
-            self,
-            positive=("mass", "pitch_inertia", "pitch_stiffness"),
-            nonnegative=("axial_damping", "pitch_damping"),
-            finite=("nut_height", "scale_height", "tool_height"),
-        )
+    mass: Float[Array, ""] = _checks.positive_field("Carriage(mass=...)")
+    pitch_inertia: Float[Array, ""] = _checks.positive_field("Carriage(pitch_inertia=...)")
+    pitch_stiffness: Float[Array, ""] = _checks.positive_field("Carriage(pitch_stiffness=...)")
+    axial_damping: Float[Array, ""] = _checks.nonnegative_field(
+        "Carriage(axial_damping=...)", default=0.0
+    )
+    pitch_damping: Float[Array, ""] = _checks.nonnegative_field(
+        "Carriage(pitch_damping=...)", default=0.0
+    )
+    nut_height: Float[Array, ""] = _checks.finite_field("Carriage(nut_height=...)", default=0.0)
+    scale_height: Float[Array, ""] = _checks.finite_field("Carriage(scale_height=...)", default=0.0)
+    tool_height: Float[Array, ""] = _checks.finite_field("Carriage(tool_height=...)", default=0.0)
 
     @property
-    def heights(self) -> Float[Array, "3"]:
+    def heights(self) -> Float[Array, 3]:
         """Heights of (nut, scale, tool)."""
         return jnp.stack([self.nut_height, self.scale_height, self.tool_height])
 
@@ -236,12 +238,13 @@ class Carriage(eqx.Module):
         w = _cplx(omega)
         axial = -w * w * _cplx(self.mass) + 1j * w * _cplx(self.axial_damping)
         pitch = (
-            _cplx(self.pitch_stiffness) - w * w * _cplx(self.pitch_inertia)
+            _cplx(self.pitch_stiffness)
+            - w * w * _cplx(self.pitch_inertia)
             + 1j * w * _cplx(self.pitch_damping)
         )
         return axial, pitch
 
-    def receptance(self, omega) -> list[list[Complex[Array, "..."]]]:
+    def receptance(self, omega) -> list[list[Complex[Array, ...]]]:
         """Receptance over (x_n, x_2, x_3) per axial force at those points (m/N), as entries."""
         axial, pitch = self.modal_stiffness(omega)
         ya, yp = 1.0 / axial, 1.0 / pitch
@@ -252,11 +255,8 @@ class Carriage(eqx.Module):
 class NutJoint(eqx.Module):
     """The screw–nut joint: axial stiffness k_ja (N/m) and damping c_ja (N·s/m) (paper Eq. 1)."""
 
-    stiffness: Float[Array, ""] = eqx.field(converter=_scalar)
-    damping: Float[Array, ""] = eqx.field(converter=_scalar, default=0.0)
-
-    def __check_init__(self):
-        _check_fields(self, positive=("stiffness",), nonnegative=("damping",))
+    stiffness: Float[Array, ""] = _checks.positive_field("NutJoint(stiffness=...)")
+    damping: Float[Array, ""] = _checks.nonnegative_field("NutJoint(damping=...)", default=0.0)
 
     def dynamic_stiffness(self, omega):
         return spring_stiffness(self.stiffness, self.damping, omega)

@@ -1,0 +1,121 @@
+"""Bad input: a clear ValueError naming the argument, its value and what was expected."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import fdjax
+
+FREQ = np.linspace(10.0, 100.0, 5)
+
+
+@pytest.mark.parametrize(
+    "build, match",
+    [
+        (lambda: fdjax.chain_model([100.0, -1.0], [1e7], [0.0]),
+         r"chain_model\(masses=\.\.\.\)` must be finite and positive, got -1"),
+        (lambda: fdjax.chain_model([100.0, 0.0], [1e7], [0.0]),
+         r"chain_model\(masses=\.\.\.\)` must be finite and positive, got 0"),
+        (lambda: fdjax.chain_model([100.0, 1.0], [-5.0], [0.0]),
+         r"chain_model\(stiffnesses=\.\.\.\)` must be finite and positive, got -5"),
+        (lambda: fdjax.chain_model([100.0, 1.0], [1e7, 1e7], [0.0]),
+         r"must have 1 entries for 2 masses"),
+        (lambda: fdjax.LumpedModel([[1.0, 0], [0, -1.0]], np.eye(2), np.eye(2)),
+         r"LumpedModel\(mass=\.\.\.\)` must be symmetric positive definite"),
+        (lambda: fdjax.Rod.axial(diameter=0.03, length=0.0),
+         r"Rod\(length=\.\.\.\)` must be finite and positive, got 0"),
+        (lambda: fdjax.Rod.axial(diameter=-0.03, length=1.0),
+         r"Rod.axial\(diameter=\.\.\.\)` must be finite and positive, got -0.03"),
+        (lambda: fdjax.Screw(length=1.0, diameter=0.03, lead=-0.02),
+         r"Screw\(lead=\.\.\.\)` must be finite and positive, got -0.02"),
+        (lambda: fdjax.Screw(length=1.0, diameter=0.03, lead=0.0),
+         r"Screw\(lead=\.\.\.\)` must be finite and positive, got 0"),
+        (lambda: fdjax.Screw(length=np.nan, diameter=0.03, lead=0.01),
+         r"Screw\(length=\.\.\.\)` must be finite and positive, got nan"),
+        (lambda: fdjax.Carriage(mass=250.0, pitch_inertia=9.0, pitch_stiffness=2e8,
+                                tool_height=np.nan),
+         r"Carriage\(tool_height=\.\.\.\)` must be finite"),
+        (lambda: fdjax.NutJoint(stiffness=-1e8),
+         r"NutJoint\(stiffness=\.\.\.\)` must be finite and positive, got -1e\+08"),
+        (lambda: fdjax.Rotary(motor_inertia=0.0, coupling_stiffness=1e4),
+         r"Rotary\(motor_inertia=\.\.\.\)` must be finite and positive, got 0"),
+        (lambda: fdjax.Axial(drive_end_stiffness=7e8, free_end_damping=-1.0),
+         r"Axial\(free_end_damping=\.\.\.\)` must be finite and non-negative, got -1"),
+    ],
+)
+def test_bad_parameters(build, match):
+    with pytest.raises(ValueError, match=match):
+        build()
+
+
+def test_position_outside_travel():
+    drive = fdjax.reference_drive()
+    with pytest.raises(ValueError, match=r"frf\(position_m=\.\.\.\)` must be inside the travel "
+                                         r"\[0.1, 0.7\] m, got 0.8 at index 1"):
+        drive.frf([0.3, 0.8], FREQ)
+
+
+def test_travel_beyond_screw():
+    d = fdjax.reference_drive()
+    with pytest.raises(ValueError, match=r"must keep the nut strictly inside the screw"):
+        fdjax.BallScrewDrive(d.screw, d.rotary, d.axial, d.carriage, d.nut, nut_offset=0.15,
+                             travel_m=(0.1, 0.9))
+
+
+@pytest.mark.parametrize(
+    "freq, match",
+    [
+        ([10.0, 5.0, 20.0], r"frf\(freq_hz=\.\.\.\)` must be strictly increasing"),
+        ([10.0, 10.0], r"must be strictly increasing"),
+        ([0.0, 5.0], r"frf\(freq_hz=\.\.\.\)` must be finite and positive, got 0"),
+        ([-1.0, 5.0], r"must be finite and positive, got -1"),
+        ([1.0, np.nan], r"must be finite and positive, got nan"),
+        (np.ones((2, 2)), r"must be a 1-D grid"),
+    ],
+)
+def test_bad_frequency_grids(freq, match):
+    with pytest.raises(ValueError, match=match):
+        fdjax.reference_drive().frf([0.3], freq)
+    with pytest.raises(ValueError, match=match):
+        fdjax.three_mass().frf(freq)
+
+
+def test_errors_under_jit():
+    drive = fdjax.reference_drive()
+
+    @jax.jit
+    def f(y):
+        return drive.frf(y, FREQ)
+
+    assert f(jnp.array([0.3])).shape == (1, 5, 3, 2)
+    with pytest.raises(Exception, match=r"inside the travel"):
+        jax.block_until_ready(f(jnp.array([0.9])))
+
+    @jax.jit
+    def g(lead):
+        return fdjax.Screw(length=1.0, diameter=0.03, lead=lead).ratio
+
+    with pytest.raises(Exception, match=r"Screw\(lead=\.\.\.\)` must be finite and positive"):
+        jax.block_until_ready(g(jnp.asarray(-0.01)))
+
+
+def test_nan_parameter_inside_jit_is_not_silent():
+    drive = fdjax.reference_drive()
+
+    @eqx.filter_jit
+    def f(k):
+        d = eqx.tree_at(lambda d: d.nut.stiffness, drive, k)
+        return d.frf(jnp.array([0.3]), FREQ)
+
+    # tree_at bypasses the constructor's checks; the non-finite result is caught instead
+    with pytest.raises(Exception, match=r"non-finite result; check the parameters for NaN"):
+        jax.block_until_ready(f(jnp.asarray(jnp.nan)))
+
+    @jax.jit
+    def g(k):
+        return fdjax.NutJoint(stiffness=k).dynamic_stiffness(1.0)
+
+    with pytest.raises(Exception, match=r"NutJoint\(stiffness=\.\.\.\)` must be finite"):
+        jax.block_until_ready(g(jnp.asarray(jnp.nan)))
