@@ -16,7 +16,7 @@ $(STAMP): pyproject.toml
 install: $(STAMP)
 
 demo: $(STAMP)
-	$(PY) examples/demo.py --out $(OUT)
+	$(VENV)/bin/fdjax demo --out $(OUT)
 
 test: $(STAMP)
 	$(PY) -m pytest -q

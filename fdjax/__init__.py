@@ -21,6 +21,14 @@ from ._drive import (
     BallScrewDrive as BallScrewDrive,
     reference_drive as reference_drive,
 )
+from ._filters import (
+    MCM as MCM,
+    AbstractFilter as AbstractFilter,
+    DiscreteFilter as DiscreteFilter,
+    FilterStateSpace as FilterStateSpace,
+    NotchFilter as NotchFilter,
+    PeakFilter as PeakFilter,
+)
 from ._lumped import (
     LumpedModel as LumpedModel,
     chain_model as chain_model,
@@ -33,12 +41,4 @@ from ._substructures import (
     NutJoint as NutJoint,
     Rotary as Rotary,
     Screw as Screw,
-)
-from ._filters import (
-    MCM as MCM,
-    AbstractFilter as AbstractFilter,
-    DiscreteFilter as DiscreteFilter,
-    FilterStateSpace as FilterStateSpace,
-    NotchFilter as NotchFilter,
-    PeakFilter as PeakFilter,
 )

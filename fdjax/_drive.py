@@ -25,7 +25,7 @@ from jaxtyping import Array, ArrayLike, Complex, Float
 
 from . import _checks
 from ._coupling import block_diagonal, couple_entries
-from ._linalg import from_entries, stack_entries
+from ._linalg import from_entries, recip, stack_entries
 from ._substructures import Axial, Carriage, NutJoint, Rotary, Screw, tridiagonal_dense
 
 __all__ = ["BallScrewDrive", "reference_drive", "OUTPUTS", "INPUTS"]
@@ -95,7 +95,7 @@ class BallScrewDrive(eqx.Module):
         (h11, h1l, hll), ha, hs = self.substructure_receptances(position_m, omega)
         Y = block_diagonal([[h11, h1l], [h1l, hll]], [[ha]], hs)
         B = [[0, -self.screw.ratio.astype(jnp.complex128), -1.0, 1.0, 0, 0]]
-        joint = [[1.0 / self.nut.dynamic_stiffness(omega)]]
+        joint = [[recip(self.nut.dynamic_stiffness(omega))]]
         return couple_entries(Y, B, joint)
 
     def receptance(self, position_m, omega) -> Complex[Array, "... 3 2"]:

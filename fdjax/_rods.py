@@ -26,6 +26,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Complex, Float
 
 from . import _checks
+from ._linalg import recip
 
 __all__ = ["Rod", "Support", "rod_receptance"]
 
@@ -161,7 +162,7 @@ def _segment(kz, phase):
     segment instead of a complex sine and cosine.
     """
     e2 = phase * phase
-    den = 1.0 / (e2 - 1.0)
+    den = recip(e2 - 1.0)
     return 1j * kz * (e2 + 1.0) * den, -2j * kz * phase * den
 
 
@@ -187,17 +188,17 @@ def tridiagonal_receptance(
     n = len(diag)
     a = [diag[0]]
     for i in range(1, n):
-        a.append(diag[i] - off[i - 1] ** 2 / a[i - 1])
+        a.append(diag[i] - off[i - 1] ** 2 * recip(a[i - 1]))
     b = [None] * n
     b[n - 1] = diag[n - 1]
     for i in range(n - 2, -1, -1):
-        b[i] = diag[i] - off[i] ** 2 / b[i + 1]
+        b[i] = diag[i] - off[i] ** 2 * recip(b[i + 1])
     out = []
     for i, j in pairs:
         i, j = min(i, j), max(i, j)
-        h = 1.0 / (a[j] + b[j] - diag[j])
+        h = recip(a[j] + b[j] - diag[j])
         for k in range(i, j):
-            h = h * (-off[k] / a[k])
+            h = h * (-off[k] * recip(a[k]))
         out.append(h)
     return out
 
@@ -223,7 +224,7 @@ def line_stiffness(
     diag = [jnp.zeros((), jnp.complex128) for _ in range(n)]
     off = []
     for i in range(n - 1):
-        seg = phases[i + 1] if i == 0 else phases[i + 1] / phases[i]
+        seg = phases[i + 1] if i == 0 else phases[i + 1] * recip(phases[i])
         d, e = _segment(kz, seg)
         diag[i] = diag[i] + d
         diag[i + 1] = diag[i + 1] + d

@@ -18,6 +18,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Complex, Float
 
 from . import _checks
+from ._linalg import recip
 from ._rods import Rod, Support, line_stiffness, spring_stiffness, tridiagonal_receptance
 
 __all__ = ["Screw", "Rotary", "Axial", "Carriage", "NutJoint"]
@@ -247,7 +248,7 @@ class Carriage(eqx.Module):
     def receptance(self, omega) -> list[list[Complex[Array, ...]]]:
         """Receptance over (x_n, x_2, x_3) per axial force at those points (m/N), as entries."""
         axial, pitch = self.modal_stiffness(omega)
-        ya, yp = 1.0 / axial, 1.0 / pitch
+        ya, yp = recip(axial), recip(pitch)
         h = [_cplx(x) for x in (self.nut_height, self.scale_height, self.tool_height)]
         return [[ya + yp * (h[i] * h[j]) for j in range(3)] for i in range(3)]
 

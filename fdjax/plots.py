@@ -1,0 +1,119 @@
+"""The paper's figures, each a function of results computed by fdjax (matplotlib, edge module).
+
+Every function takes data (arrays and models), draws on a new figure and returns it, so the
+numbers a figure shows are the numbers the caller computed.  Frequencies are shown in Hz and
+positions in mm, as a dynamics engineer reads them.
+"""
+
+from __future__ import annotations
+
+import matplotlib
+
+matplotlib.use("Agg")  # headless by default; figures are written to files
+
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib.colors import LogNorm  # noqa: E402
+
+from ._drive import INPUTS, OUTPUTS  # noqa: E402
+
+__all__ = ["plot_three_mass_frf", "plot_frf_family", "plot_frf_cloud"]
+
+_OUT_LABEL = {"theta1": r"$\theta_1$", "x2": r"$x_2$", "x3": r"$x_3$"}
+_IN_LABEL = {"T1": r"$T_1$", "F3": r"$F_3$"}
+_UNITS = {
+    ("theta1", "T1"): "rad/(N·m)", ("theta1", "F3"): "rad/N",
+    ("x2", "T1"): "m/(N·m)", ("x2", "F3"): "m/N",
+    ("x3", "T1"): "m/(N·m)", ("x3", "F3"): "m/N",
+}
+
+
+def plot_three_mass_frf(freq_hz, H, natural_hz=None):
+    """Paper Fig. 2: magnitude and phase of h11, h21, h31 of the 3M2S system.
+
+    Args:
+        freq_hz: frequency grid (Hz).
+        H: receptance (n_freq, 3, 3) from ``three_mass().frf``.
+        natural_hz: optional natural frequencies to mark.
+    """
+    f = np.asarray(freq_hz)
+    H = np.asarray(H)
+    fig, axes = plt.subplots(2, 3, figsize=(12, 5.5), sharex=True)
+    for k in range(3):
+        h = H[:, k, 0]
+        axes[0, k].loglog(f, np.abs(h), color="C0")
+        axes[0, k].set_title(rf"$h_{{{k + 1}1}} = x_{k + 1}/F_1$")
+        phase = np.degrees(np.unwrap(np.angle(h)))
+        phase -= 360.0 * np.round((phase[0] + 180.0) / 360.0)  # rigid body at −180°
+        axes[1, k].semilogx(f, phase, color="C1")
+        axes[1, k].set_xlabel("frequency (Hz)")
+        for ax in axes[:, k]:
+            ax.grid(True, which="both", alpha=0.3)
+            if natural_hz is not None:
+                for fn in np.atleast_1d(natural_hz):
+                    if fn > 0:
+                        ax.axvline(fn, color="k", lw=0.6, ls=":")
+    axes[0, 0].set_ylabel("|h| (m/N)")
+    axes[1, 0].set_ylabel("phase (°)")
+    fig.suptitle("3M2S receptances: collocated h11, non-collocated h21 and h31 (paper Fig. 2)")
+    fig.tight_layout()
+    return fig
+
+
+def plot_frf_family(position_m, freq_hz, H):
+    """Paper Fig. 10: families of |H_M| for all six entries, one curve per table position.
+
+    Args:
+        position_m: table positions (m), shape (n_pos,).
+        freq_hz: frequency grid (Hz), shape (n_freq,).
+        H: ``drive.frf(position_m, freq_hz)``, shape (n_pos, n_freq, 3, 2).
+    """
+    pos, f, H = np.asarray(position_m), np.asarray(freq_hz), np.asarray(H)
+    fig, axes = plt.subplots(3, 2, figsize=(11, 10), sharex=True)
+    colors = plt.cm.viridis(np.linspace(0, 1, pos.size))
+    for i, out in enumerate(OUTPUTS):
+        for j, inp in enumerate(INPUTS):
+            ax = axes[i, j]
+            for p in range(pos.size):
+                ax.loglog(f, np.abs(H[p, :, i, j]), color=colors[p], lw=0.9,
+                          label=f"{pos[p] * 1e3:.0f} mm")
+            ax.set_title(f"{_IN_LABEL[inp]} in, {_OUT_LABEL[out]} out")
+            ax.set_ylabel(f"|h| ({_UNITS[(out, inp)]})")
+            ax.grid(True, which="both", alpha=0.3)
+    for ax in axes[-1]:
+        ax.set_xlabel("frequency (Hz)")
+    axes[0, 1].legend(title=r"$Y_{table}$", fontsize=7, ncol=2)
+    fig.suptitle("Position-dependent dynamics H_M(Y_table, f) (paper Fig. 10)")
+    fig.tight_layout()
+    return fig
+
+
+def plot_frf_cloud(
+    position_m, freq_hz, h, *, title="|ω² h21| = |ẍ2/T1|", units="m/(s²·N·m)",
+    accelerance=True, decades=5.0,
+):
+    """Paper Fig. 11: cloud image of one FRF magnitude over frequency × table position.
+
+    By default the accelerance ``|ω² h|`` is shown: it removes the rigid-body 1/ω² slope so the
+    modes at every frequency share one colour scale.
+
+    Args:
+        position_m: table positions (m), shape (n_pos,).
+        freq_hz: frequency grid (Hz), shape (n_freq,).
+        h: complex FRF entry, shape (n_pos, n_freq), e.g. ``drive.frf(...)[:, :, 1, 0]``.
+        accelerance: multiply by ω² before plotting.
+        decades: colour range below the maximum, in decades.
+    """
+    pos, f, a = np.asarray(position_m), np.asarray(freq_hz), np.abs(np.asarray(h))
+    if accelerance:
+        a = a * (2 * np.pi * f[None, :]) ** 2
+    fig, ax = plt.subplots(figsize=(9, 5))
+    norm = LogNorm(vmin=a.max() * 10.0**-decades, vmax=a.max())
+    mesh = ax.pcolormesh(f, pos * 1e3, a, norm=norm, shading="auto", cmap="magma")
+    ax.set_xscale("log")
+    ax.set_xlabel("frequency (Hz)")
+    ax.set_ylabel(r"table position $Y_{table}$ (mm)")
+    fig.colorbar(mesh, ax=ax, label=f"{title} ({units})")
+    ax.set_title(f"{title} over position and frequency (paper Fig. 11)")
+    fig.tight_layout()
+    return fig
