@@ -23,7 +23,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Complex, Float
 
 from . import _checks
-from ._linalg import Entries, add, entries, from_entries, inv_entries, matmul_entries, mul
+from ._linalg import Entries, add, entries, from_entries, inv_entries, matmul_entries
 
 __all__ = ["couple", "couple_entries", "block_diagonal", "joint_receptance"]
 
@@ -112,7 +112,7 @@ def block_diagonal(*blocks: Entries) -> Entries:
     return out
 
 
-def joint_receptance(stiffness, damping, omega) -> Complex[Array, "..."]:
+def joint_receptance(stiffness, damping, omega) -> Complex[Array, ...]:
     """Receptance of a spring–damper joint, ``1 / (k + iωc)`` (paper Eq. 1, last term)."""
     k = jnp.asarray(stiffness).astype(jnp.complex128)
     c = jnp.asarray(damping).astype(jnp.complex128)
