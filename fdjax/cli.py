@@ -28,6 +28,18 @@ def demo(out: str) -> dict:
           + ", ".join(f"{x:.1f} Hz" for x in np.asarray(fn)[1:]))
     plots.plot_three_mass_frf(f3, H3, np.asarray(fn)).savefig(
         os.path.join(out, "fig2_three_mass_frf.png"), dpi=120)
+    # Fig. 3: deflection shapes, the column F1 of the receptance read at each resonance
+    # (imaginary part: the resonant response) and far below (real part: rigid-body motion)
+    fr = np.asarray(fn)[1:]
+    at = np.asarray(model.frf(np.concatenate([[0.5], fr])))[:, :, 0]
+    shapes = np.stack([at[0].real, at[1].imag, at[2].imag])
+    plots.plot_deflection_shapes(
+        shapes, ["rigid motion"] + [f"mode {k + 1}: {x:.1f} Hz" for k, x in enumerate(fr)]
+    ).savefig(os.path.join(out, "fig3_deflection_shapes.png"), dpi=120)
+    fv = np.linspace(60.0, 250.0, 4000)
+    Hv = np.asarray(model.frf(fv))
+    plots.plot_velocity_nyquist(fv, Hv[:, 0, 0], Hv[:, 1, 0]).savefig(
+        os.path.join(out, "fig5_velocity_nyquist.png"), dpi=120)
 
     drive = fdjax.reference_drive()
     pos = np.linspace(0.1, 0.7, 61)

@@ -17,7 +17,13 @@ from matplotlib.colors import LogNorm  # noqa: E402
 
 from ._drive import INPUTS, OUTPUTS  # noqa: E402
 
-__all__ = ["plot_three_mass_frf", "plot_frf_family", "plot_frf_cloud"]
+__all__ = [
+    "plot_three_mass_frf",
+    "plot_deflection_shapes",
+    "plot_velocity_nyquist",
+    "plot_frf_family",
+    "plot_frf_cloud",
+]
 
 _OUT_LABEL = {"theta1": r"$\theta_1$", "x2": r"$x_2$", "x3": r"$x_3$"}
 _IN_LABEL = {"T1": r"$T_1$", "F3": r"$F_3$"}
@@ -56,6 +62,64 @@ def plot_three_mass_frf(freq_hz, H, natural_hz=None):
     axes[0, 0].set_ylabel("|h| (m/N)")
     axes[1, 0].set_ylabel("phase (°)")
     fig.suptitle("3M2S receptances: collocated h11, non-collocated h21 and h31 (paper Fig. 2)")
+    fig.tight_layout()
+    return fig
+
+
+def plot_deflection_shapes(shapes, labels):
+    """Paper Fig. 3: operating deflection shapes of the 3M2S (one panel per shape).
+
+    Args:
+        shapes: real array (n_shapes, n_coordinates), each row one deflection shape (any scale;
+            normalised here to unit peak so that signs and relative amplitudes show).
+        labels: one title per shape, e.g. ``["rigid body", "103.7 Hz", "154.5 Hz"]``.
+    """
+    shapes = np.asarray(shapes, dtype=float)
+    n, m = shapes.shape
+    fig, axes = plt.subplots(1, n, figsize=(3.6 * n, 3.4), sharey=True)
+    for k, ax in enumerate(np.atleast_1d(axes)):
+        v = shapes[k] / np.max(np.abs(shapes[k]))
+        v = v * (np.sign(v[0]) or 1.0)  # coordinate 1 (the actuator) drawn positive
+        colors = ["C0" if x >= 0 else "C3" for x in v]
+        ax.bar(np.arange(1, m + 1), v, color=colors)
+        ax.axhline(0, color="k", lw=0.8)
+        ax.set_xticks(np.arange(1, m + 1), [f"coord. {i}" for i in range(1, m + 1)])
+        ax.set_title(labels[k])
+        ax.grid(True, axis="y", alpha=0.3)
+    np.atleast_1d(axes)[0].set_ylabel("normalised deflection (–)")
+    fig.suptitle("Operating deflection shapes (paper Fig. 3): red = opposite sign to coordinate 1")
+    fig.tight_layout()
+    return fig
+
+
+def plot_velocity_nyquist(freq_hz, h_collocated, h_noncollocated, *, labels=("v1/F1", "v2/F1")):
+    """Paper Fig. 5: Nyquist plots of a collocated and a non-collocated velocity receptance.
+
+    Velocity receptance is ``iω h``.  Collocated modes all draw their circles on one side;
+    a non-collocated pair has circles on opposite sides.
+
+    Args:
+        freq_hz: frequency grid (Hz).
+        h_collocated, h_noncollocated: displacement receptances on that grid (complex).
+    """
+    f = np.asarray(freq_hz)
+    iw = 2j * np.pi * f
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4.6))
+    for ax, h, lab in zip(axes, (h_collocated, h_noncollocated), labels):
+        v = iw * np.asarray(h)
+        ax.plot(v.real, v.imag, color="C0")
+        ax.plot(v.real[0], v.imag[0], "o", color="C2", label=f"{f[0]:.0f} Hz")
+        ax.plot(v.real[-1], v.imag[-1], "s", color="C3", label=f"{f[-1]:.0f} Hz")
+        ax.axhline(0, color="k", lw=0.6)
+        ax.axvline(0, color="k", lw=0.6)
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.ticklabel_format(style="sci", scilimits=(0, 0))
+        ax.set_xlabel("real (m/(N·s))")
+        ax.set_ylabel("imaginary (m/(N·s))")
+        ax.set_title(lab)
+        ax.legend(fontsize=8)
+        ax.grid(True, alpha=0.3)
+    fig.suptitle("Velocity receptances: collocated vs non-collocated (paper Fig. 5)")
     fig.tight_layout()
     return fig
 
