@@ -35,6 +35,16 @@ from ._lumped import (
     three_mass as three_mass,
 )
 from ._rods import Rod as Rod, Support as Support, rod_receptance as rod_receptance
+from ._statespace import (
+    DEFAULT_BAND_HZ as DEFAULT_BAND_HZ,
+    DEFAULT_ELEMENTS as DEFAULT_ELEMENTS,
+    VELOCITY_OUTPUTS as VELOCITY_OUTPUTS,
+    FEMatrices as FEMatrices,
+    StateSpace as StateSpace,
+    count_modes as count_modes,
+    fe_matrices as fe_matrices,
+    state_space as state_space,
+)
 from ._substructures import (
     Axial as Axial,
     Carriage as Carriage,

@@ -75,6 +75,13 @@ class Screw(eqx.Module):
         """Transmission ratio i_sc = lead / 2π (m/rad)."""
         return self.lead / (2 * jnp.pi)
 
+    def section(self) -> tuple[Array, Array, Array, Array]:
+        """``(GJ, ρJ, EA, ρA)`` of the solid circular section: J = πd⁴/32, A = πd²/4."""
+        area = jnp.pi * self.diameter**2 / 4
+        polar = jnp.pi * self.diameter**4 / 32
+        return (self.shear_modulus * polar, self.density * polar,
+                self.youngs_modulus * area, self.density * area)
+
     def torsion(self) -> Rod:
         return Rod.torsion(
             diameter=self.diameter,
