@@ -11,6 +11,14 @@ jax.config.update("jax_enable_x64", True)
 
 __version__ = "0.1.0"
 
+from ._calibrate import (
+    TABLE_1 as TABLE_1,
+    DriveModes as DriveModes,
+    ModalData as ModalData,
+    ModelUpdate as ModelUpdate,
+    drive_modes as drive_modes,
+    update_model as update_model,
+)
 from ._coupling import (
     couple as couple,
     joint_receptance as joint_receptance,

@@ -1,0 +1,344 @@
+r"""Modal characteristics of the drive model, and model updating against measured modal data.
+
+**Modes of the model.**  The time-domain twin's finite-element matrices give the first-order
+system ``ż = A z + B u`` with ``A = [[0, I], [−M⁻¹K, −M⁻¹C]]``.  Its eigenvalues
+``λ_r = −ζ_r ω_r ± iω_r √(1−ζ_r²)`` give natural frequency ``ω_r = |λ_r|`` and damping ratio
+``ζ_r = −Re λ_r / |λ_r|``; with right/left eigenvectors the residue of output ``o`` per input ``i``
+is ``R_r = (S v_r)_o (w_rᵀ B)_i`` and the mode's own term is the conjugate pair
+
+    h_r(ω) = R_r / (iω − λ_r) + R̄_r / (iω − λ̄_r).
+
+Its **resonant phase** is ``arg h_r(ω_r)`` (DESIGN.md §2, paper Table 1): for a term
+``A e^{iα} / (ω_r² − ω² + 2iζω_rω)`` this is ``α − 90°``.  Phases are wrapped to (−360°, 0].
+These are exact properties of the model (no curve fit), differentiable in every parameter.
+
+**Model updating.**  Given target modal data (e.g. the paper's Table 1 at Y_table = 115 mm),
+bounded physical parameters are adjusted by Levenberg–Marquardt (optimistix) on residuals
+normalised by the tolerances,
+
+    r = [ln(f/f*) / tol_f,  ln(ζ/ζ*) / tol_ζ,  wrap(φ − φ*) / tol_φ],
+
+so ``|r| ≤ 1`` means "within tolerance".  Each target is paired with the nearest-frequency
+visible model mode (greedy, in target order; a mode is visible when its own term is at least
+``visibility`` of the whole FRF at its natural frequency).  Bounds are kept by the parameterisation
+``θ = lo (hi/lo)^σ(u)`` (or ``lo + (hi − lo) σ(u)`` for signed quantities), not by clipping.
+"""
+
+from __future__ import annotations
+
+import operator
+from collections.abc import Mapping
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+from jaxtyping import Array, ArrayLike, Float
+
+from ._drive import INPUTS, OUTPUTS, BallScrewDrive
+from ._statespace import DEFAULT_ELEMENTS, fe_matrices
+
+__all__ = ["ModalData", "DriveModes", "ModelUpdate", "drive_modes", "update_model", "TABLE_1"]
+
+
+def _vec(x) -> Array:
+    return jnp.atleast_1d(jnp.asarray(x, dtype=jnp.float64))
+
+
+class ModalData(eqx.Module):
+    """Target modal data of one FRF: frequency (Hz), damping ratio, resonant phase (°)."""
+
+    frequency_hz: Float[Array, " n"] = eqx.field(converter=_vec)
+    damping: Float[Array, " n"] = eqx.field(converter=_vec)
+    phase_deg: Float[Array, " n"] = eqx.field(converter=_vec)
+
+    def __check_init__(self):
+        n = self.frequency_hz.shape
+        if self.damping.shape != n or self.phase_deg.shape != n:
+            raise ValueError(
+                "`ModalData(frequency_hz=..., damping=..., phase_deg=...)` must have equal "
+                f"lengths, got {n[0]}, {self.damping.shape[0]}, {self.phase_deg.shape[0]}"
+            )
+
+
+TABLE_1 = ModalData(
+    frequency_hz=[49.0, 95.0, 130.0, 1030.0, 1529.0],
+    damping=[0.120, 0.170, 0.090, 0.003, 0.010],
+    phase_deg=[-135.0, -155.0, -260.0, -198.0, -31.0],
+)
+"""The paper's Table 1: modes of h21 (x2/T1) identified at Y_table = 115 mm."""
+
+TABLE_1_POSITION_M = 0.115
+
+
+class DriveModes(eqx.Module):
+    """Modes of one FRF entry of the drive model, ascending in frequency.
+
+    Attributes:
+        frequency_hz: natural frequencies |λ_r|/2π (Hz).
+        damping: damping ratios −Re λ_r/|λ_r|.
+        phase_deg: resonant phase of the entry, arg h_r(ω_r) in (−360°, 0].
+        amplitude: |h_r(ω_r)|, the mode's peak contribution (units of the FRF entry).
+        prominence: |h_r(ω_r)| / |h(ω_r)|, the mode's share of the whole entry at its own
+            natural frequency: how visible (identifiable) it is in a measured FRF.
+        poles: λ_r (rad/s), upper half-plane.
+    """
+
+    frequency_hz: Float[Array, "*b n"]
+    damping: Float[Array, "*b n"]
+    phase_deg: Float[Array, "*b n"]
+    amplitude: Float[Array, "*b n"]
+    prominence: Float[Array, "*b n"]
+    poles: Array
+
+
+def _wrap_deg(phi):
+    """Wrap degrees to (−360, 0]."""
+    return phi - 360.0 * jnp.ceil(phi / 360.0)
+
+
+def _channel(name, names, arg):
+    if name not in names:
+        raise ValueError(f"`drive_modes({arg}=...)` must be one of {names}, got {name!r}")
+    return names.index(name)
+
+
+def _modes_from_fe(fe, out: int, inp: int, n_keep: int) -> DriveModes:
+    N = fe.mass.shape[0]
+    Minv = jnp.linalg.inv(fe.mass)
+    A = jnp.block([[jnp.zeros((N, N)), jnp.eye(N)], [-Minv @ fe.stiffness, -Minv @ fe.damping]])
+    B = jnp.concatenate([jnp.zeros((N,)), Minv @ fe.inputs[:, inp]])
+    C = jnp.concatenate([fe.outputs[out], jnp.zeros((N,))])
+    # Residues need left eigenvectors: rows of V⁻¹.  They are invariant to the scaling of
+    # each eigenvector, so the eigenvector-derivative gauge JAX asks us to accept is harmless.
+    lam, V = jax.lax.linalg.eig(A, compute_left_eigenvectors=False, enable_eigvec_derivs=True)
+    W = jnp.linalg.inv(V)
+    # the lowest oscillatory poles in the upper half-plane (rigid-body and overdamped poles
+    # are real and excluded)
+    oscillatory = jnp.imag(lam) > 1e-6 * jnp.max(jnp.abs(lam))
+    keep = jnp.argsort(jnp.where(oscillatory, jnp.abs(lam), jnp.inf))[:n_keep]
+    lam, V, W = lam[keep], V[:, keep], W[keep, :]
+    Cc, Bc = C.astype(jnp.complex128), B.astype(jnp.complex128)
+    R = (V.T @ Cc) * (W @ Bc)
+    wr = jnp.abs(lam)
+    s = 1j * wr.astype(jnp.complex128)
+    term = R / (s - lam) + jnp.conj(R) / (s - jnp.conj(lam))
+    # the whole FRF entry at each natural frequency, to judge how prominent the mode is
+    D = (fe.stiffness.astype(jnp.complex128)[None]
+         - (wr**2)[:, None, None].astype(jnp.complex128) * fe.mass.astype(jnp.complex128)[None]
+         + s[:, None, None] * fe.damping.astype(jnp.complex128)[None])
+    q = jnp.linalg.solve(D, jnp.broadcast_to(fe.inputs[:, inp].astype(jnp.complex128),
+                                            (n_keep, N))[..., None])[..., 0]
+    total = q @ fe.outputs[out].astype(jnp.complex128)
+    idx = jnp.argsort(wr)
+    return DriveModes(
+        frequency_hz=(wr / (2 * jnp.pi))[idx],
+        damping=(-jnp.real(lam) / wr)[idx],
+        phase_deg=_wrap_deg(jnp.degrees(jnp.angle(term)))[idx],
+        amplitude=jnp.abs(term)[idx],
+        prominence=(jnp.abs(term) / jnp.abs(total))[idx],
+        poles=lam[idx],
+    )
+
+
+def drive_modes(
+    drive: BallScrewDrive,
+    position_m: Float[ArrayLike, ""],
+    *,
+    output: str = "x2",
+    input: str = "T1",
+    n_modes: int = 12,
+    n_elements: int = DEFAULT_ELEMENTS,
+) -> DriveModes:
+    """The lowest ``n_modes`` flexible modes of one FRF entry of the drive at a position.
+
+    Exact eigen-analysis of the finite-element twin (see the module docstring); the default
+    entry is h21 = x2/T1, the paper's Table 1 and Fig. 12.  Differentiable and ``vmap``-able
+    over positions.
+    """
+    out = _channel(output, OUTPUTS, "output")
+    inp = _channel(input, INPUTS, "input")
+    fe = fe_matrices(drive, position_m, n_elements=n_elements)
+    return _modes_jit(fe, out, inp, int(n_modes))
+
+
+@eqx.filter_jit
+def _modes_jit(fe, out, inp, n_modes):
+    return _modes_from_fe(fe, out, inp, n_modes)
+
+
+class ModelUpdate(eqx.Module):
+    """Result of :func:`update_model`.
+
+    Attributes:
+        drive: the updated drive.
+        modes: the model modes paired with the targets (same order as the targets).
+        target: the target modal data.
+        residual: normalised residuals (3, n_targets): frequency, damping, phase rows;
+            ``|r| ≤ 1`` is within tolerance.
+        frequency_error: relative frequency errors f/f* − 1.
+        damping_error: relative damping errors ζ/ζ* − 1.
+        phase_error_deg: phase errors wrapped to (−180°, 180°].
+        parameters: the fitted parameter values by path.
+        steps: Levenberg–Marquardt steps taken.
+        success: whether the solver converged.
+    """
+
+    drive: BallScrewDrive
+    modes: DriveModes
+    target: ModalData
+    residual: Float[Array, "3 n"]
+    frequency_error: Float[Array, " n"]
+    damping_error: Float[Array, " n"]
+    phase_error_deg: Float[Array, " n"]
+    parameters: dict
+    steps: Array
+    success: Array
+
+    def within(self, tolerances=(0.03, 0.25, 15.0)) -> np.ndarray:
+        """Boolean (3, n): which targets meet the given (frequency, damping, phase) tolerances."""
+        tf, tz, tp = tolerances
+        return np.stack([
+            np.abs(np.asarray(self.frequency_error)) <= tf,
+            np.abs(np.asarray(self.damping_error)) <= tz,
+            np.abs(np.asarray(self.phase_error_deg)) <= tp,
+        ])
+
+
+def _wrap180(phi):
+    return phi - 360.0 * jnp.round(phi / 360.0)
+
+
+def _pair(modes: DriveModes, target: ModalData, visibility: float) -> Array:
+    """Greedy pairing: each target (in order) takes the nearest visible, unused model mode."""
+    n_m = modes.frequency_hz.shape[-1]
+    visible = modes.prominence >= visibility
+    used = jnp.logical_not(visible)
+    picks = []
+    for t in range(target.frequency_hz.shape[0]):
+        cost = jnp.abs(jnp.log(modes.frequency_hz / target.frequency_hz[t]))
+        k = jnp.argmin(jnp.where(used, 1e6 + cost, cost))  # falls back to used modes
+        picks.append(k)
+        used = used | (jnp.arange(n_m) == k)
+    return jax.lax.stop_gradient(jnp.stack(picks))
+
+
+def _getter(path: str):
+    get = operator.attrgetter(path)
+    return get
+
+
+def _to_unit(value, lo, hi, log):
+    if log:
+        x = (np.log(value) - np.log(lo)) / (np.log(hi) - np.log(lo))
+    else:
+        x = (value - lo) / (hi - lo)
+    x = np.clip(x, 1e-6, 1 - 1e-6)
+    return np.log(x / (1 - x))
+
+
+def _from_unit(u, lo, hi, log):
+    s = jax.nn.sigmoid(u)
+    return jnp.exp(np.log(lo) + s * (np.log(hi) - np.log(lo))) if log else lo + s * (hi - lo)
+
+
+def update_model(
+    drive: BallScrewDrive,
+    target: ModalData,
+    parameters: Mapping[str, tuple[float, float]],
+    position_m: float,
+    *,
+    output: str = "x2",
+    input: str = "T1",
+    tolerances: tuple[float, float, float] = (0.03, 0.25, 15.0),
+    visibility: float = 0.05,
+    n_modes: int = 12,
+    n_elements: int = DEFAULT_ELEMENTS,
+    max_steps: int = 200,
+    solver: optx.AbstractLeastSquaresSolver | None = None,
+) -> ModelUpdate:
+    r"""Fit bounded physical parameters so the model's modes match measured modal data.
+
+    Minimises ``Σ r²`` with the normalised residuals of the module docstring by
+    Levenberg–Marquardt, differentiating through the eigen-analysis of the twin.
+
+    Args:
+        drive: the starting model.
+        target: measured modal data of the FRF entry ``output``/``input``.
+        parameters: ``{"carriage.pitch_stiffness": (lo, hi), ...}`` — attribute paths of the
+            drive's parameters with their physically plausible bounds.  Positive bounds are
+            searched in log space; a bound ≤ 0 makes the search linear.
+        position_m: the table position at which the data were measured (m).
+        tolerances: (relative frequency, relative damping, phase in degrees) used to normalise
+            the residuals.
+        visibility: a model mode can be paired only if its prominence (its share of the FRF at
+            its own natural frequency) is at least this: modes a measurement could not see
+            are not matched.
+        solver: an optimistix least-squares solver (default Levenberg–Marquardt, rtol 1e-6).
+
+    Returns:
+        A :class:`ModelUpdate` with the fitted drive and the residuals mode by mode.
+    """
+    if not parameters:
+        raise ValueError("`update_model(parameters=...)` must name at least one parameter")
+    paths = list(parameters)
+    specs = []
+    for p in paths:
+        lo, hi = (float(v) for v in parameters[p])
+        if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
+            raise ValueError(
+                f"`update_model(parameters=...)` bounds for {p!r} must be finite with lo < hi, "
+                f"got ({lo}, {hi})"
+            )
+        try:
+            _getter(p)(drive)
+        except AttributeError:
+            raise ValueError(
+                f"`update_model(parameters=...)` has no drive parameter {p!r}"
+            ) from None
+        specs.append((lo, hi, lo > 0))
+    out, inp = _channel(output, OUTPUTS, "output"), _channel(input, INPUTS, "input")
+    u0 = jnp.asarray([
+        _to_unit(float(np.clip(float(_getter(p)(drive)), lo, hi)), lo, hi, log)
+        for p, (lo, hi, log) in zip(paths, specs)
+    ])
+    tf, tz, tp = tolerances
+    pos = jnp.asarray(position_m, dtype=jnp.float64)
+
+    def build(u):
+        values = [_from_unit(u[k], *specs[k]) for k in range(len(paths))]
+        getters = [_getter(p) for p in paths]
+        return eqx.tree_at(lambda d: [g(d) for g in getters], drive, values)
+
+    def modes_of(d):
+        fe = fe_matrices(d, pos, n_elements=n_elements)
+        return _modes_from_fe(fe, out, inp, n_modes)
+
+    def residual(u, _):
+        m = modes_of(build(u))
+        k = _pair(m, target, visibility)
+        rf = jnp.log(m.frequency_hz[k] / target.frequency_hz) / tf
+        rz = jnp.log(m.damping[k] / target.damping) / tz
+        rp = _wrap180(m.phase_deg[k] - target.phase_deg) / tp
+        return jnp.concatenate([rf, rz, rp])
+
+    solver = solver or optx.LevenbergMarquardt(rtol=1e-6, atol=1e-6)
+    sol = optx.least_squares(residual, solver, u0, max_steps=max_steps, throw=False)
+    fitted = build(sol.value)
+    m = modes_of(fitted)
+    k = _pair(m, target, visibility)
+    paired = jax.tree_util.tree_map(lambda x: x[k], m)
+    r = residual(sol.value, None).reshape(3, -1)
+    return ModelUpdate(
+        drive=fitted,
+        modes=paired,
+        target=target,
+        residual=r,
+        frequency_error=paired.frequency_hz / target.frequency_hz - 1,
+        damping_error=paired.damping / target.damping - 1,
+        phase_error_deg=_wrap180(paired.phase_deg - target.phase_deg),
+        parameters={p: float(_getter(p)(fitted)) for p in paths},
+        steps=sol.stats["num_steps"],
+        success=sol.result == optx.RESULTS.successful,
+    )
