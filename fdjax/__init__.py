@@ -17,6 +17,7 @@ from ._calibrate import (
     ModalData as ModalData,
     ModelUpdate as ModelUpdate,
     drive_modes as drive_modes,
+    track_drive_modes as track_drive_modes,
     update_model as update_model,
 )
 from ._coupling import (
@@ -41,6 +42,12 @@ from ._lumped import (
     LumpedModel as LumpedModel,
     chain_model as chain_model,
     three_mass as three_mass,
+)
+from ._modal import (
+    ModalFit as ModalFit,
+    identify_modes as identify_modes,
+    identify_modes_batched as identify_modes_batched,
+    track_modes as track_modes,
 )
 from ._rods import Rod as Rod, Support as Support, rod_receptance as rod_receptance
 from ._statespace import (

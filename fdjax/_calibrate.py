@@ -39,7 +39,10 @@ from jaxtyping import Array, ArrayLike, Float
 from ._drive import INPUTS, OUTPUTS, BallScrewDrive
 from ._statespace import DEFAULT_ELEMENTS, fe_matrices
 
-__all__ = ["ModalData", "DriveModes", "ModelUpdate", "drive_modes", "update_model", "TABLE_1"]
+__all__ = [
+    "ModalData", "DriveModes", "ModelUpdate", "drive_modes", "track_drive_modes",
+    "update_model", "TABLE_1",
+]
 
 
 def _vec(x) -> Array:
@@ -83,6 +86,8 @@ class DriveModes(eqx.Module):
         prominence: |h_r(ω_r)| / |h(ω_r)|, the mode's share of the whole entry at its own
             natural frequency: how visible (identifiable) it is in a measured FRF.
         poles: λ_r (rad/s), upper half-plane.
+        shapes: residues of all three outputs (θ1, x2, x3) for the chosen input, (n, 3):
+            the mode shapes seen from that input, used to track modes over position.
     """
 
     frequency_hz: Float[Array, "*b n"]
@@ -91,6 +96,7 @@ class DriveModes(eqx.Module):
     amplitude: Float[Array, "*b n"]
     prominence: Float[Array, "*b n"]
     poles: Array
+    shapes: Array
 
 
 def _wrap_deg(phi):
@@ -120,7 +126,10 @@ def _modes_from_fe(fe, out: int, inp: int, n_keep: int) -> DriveModes:
     keep = jnp.argsort(jnp.where(oscillatory, jnp.abs(lam), jnp.inf))[:n_keep]
     lam, V, W = lam[keep], V[:, keep], W[keep, :]
     Cc, Bc = C.astype(jnp.complex128), B.astype(jnp.complex128)
-    R = (V.T @ Cc) * (W @ Bc)
+    wb = W @ Bc
+    R = (V.T @ Cc) * wb
+    # residues of every output (θ1, x2, x3) for this input: the mode's shape for tracking
+    shapes = (V[:N].T @ fe.outputs.T.astype(jnp.complex128)) * wb[:, None]
     wr = jnp.abs(lam)
     s = 1j * wr.astype(jnp.complex128)
     term = R / (s - lam) + jnp.conj(R) / (s - jnp.conj(lam))
@@ -139,6 +148,7 @@ def _modes_from_fe(fe, out: int, inp: int, n_keep: int) -> DriveModes:
         amplitude=jnp.abs(term)[idx],
         prominence=(jnp.abs(term) / jnp.abs(total))[idx],
         poles=lam[idx],
+        shapes=shapes[idx],
     )
 
 
@@ -159,13 +169,57 @@ def drive_modes(
     """
     out = _channel(output, OUTPUTS, "output")
     inp = _channel(input, INPUTS, "input")
-    fe = fe_matrices(drive, position_m, n_elements=n_elements)
-    return _modes_jit(fe, out, inp, int(n_modes))
+    pos = jnp.asarray(position_m, dtype=jnp.float64)
+    if pos.ndim == 0:
+        fe = fe_matrices(drive, pos, n_elements=n_elements)
+        return _modes_jit(fe, out, inp, int(n_modes))
+    if pos.ndim != 1:
+        raise ValueError(f"`drive_modes(position_m=...)` must be a scalar or 1-D, got {pos.shape}")
+    for p in np.asarray(pos) if _is_concrete(pos) else ():
+        fe_matrices(drive, float(p), n_elements=1)  # validates each position (cheap)
+    return _modes_batch(drive, pos, out, inp, int(n_modes), int(n_elements))
+
+
+def _is_concrete(x) -> bool:
+    return not isinstance(x, jax.core.Tracer)
 
 
 @eqx.filter_jit
 def _modes_jit(fe, out, inp, n_modes):
     return _modes_from_fe(fe, out, inp, n_modes)
+
+
+@eqx.filter_jit
+def _modes_batch(drive, pos, out, inp, n_modes, n_elements):
+    from ._statespace import _assemble
+
+    return jax.vmap(
+        lambda p: _modes_from_fe(_assemble(drive, p, n_elements, True), out, inp, n_modes)
+    )(pos)
+
+
+def track_drive_modes(
+    modes: DriveModes, *, freq_tol: float = 0.05, mac_tol: float = 0.2
+) -> DriveModes:
+    """Re-order a position batch of :func:`drive_modes` so each index follows one mode.
+
+    Neighbouring positions are paired by minimising the frequency change (extrapolated) and
+    ``1 − MAC`` of the three-output mode shapes (see :func:`fdjax.track_modes`).
+    """
+    from ._modal import _track
+
+    if modes.frequency_hz.ndim != 2:
+        raise ValueError(
+            "`track_drive_modes(modes=...)` must be a batch over positions, got frequency_hz "
+            f"of shape {modes.frequency_hz.shape}"
+        )
+    perm = _track(modes.frequency_hz, modes.shapes, freq_tol, mac_tol, True)
+
+    def take(x):
+        idx = perm.reshape(perm.shape + (1,) * (x.ndim - 2))
+        return jnp.take_along_axis(x, idx, axis=1)
+
+    return jax.tree_util.tree_map(take, modes)
 
 
 class ModelUpdate(eqx.Module):

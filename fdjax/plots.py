@@ -23,6 +23,7 @@ __all__ = [
     "plot_velocity_nyquist",
     "plot_frf_family",
     "plot_frf_cloud",
+    "plot_resonant_phase",
 ]
 
 _OUT_LABEL = {"theta1": r"$\theta_1$", "x2": r"$x_2$", "x3": r"$x_3$"}
@@ -179,5 +180,43 @@ def plot_frf_cloud(
     ax.set_ylabel(r"table position $Y_{table}$ (mm)")
     fig.colorbar(mesh, ax=ax, label=f"{title} ({units})")
     ax.set_title(f"{title} over position and frequency (paper Fig. 11)")
+    fig.tight_layout()
+    return fig
+
+
+def plot_resonant_phase(position_m, frequency_hz, phase_deg, *, title="h21 = x2/T1"):
+    """Paper Fig. 12: resonant phase of tracked modes against table position.
+
+    Args:
+        position_m: table positions (m), shape (n_pos,).
+        frequency_hz: tracked natural frequencies (n_pos, n_modes), used for the legend and a
+            second panel showing how each mode's frequency moves.
+        phase_deg: tracked resonant phases (n_pos, n_modes), degrees in (−360, 0].
+    """
+    pos = np.asarray(position_m) * 1e3
+    f, ph = np.asarray(frequency_hz), np.asarray(phase_deg)
+    # phases are defined modulo 360°: unwrap along the position so curves do not jump
+    ph = np.unwrap(ph, period=360.0, axis=0)
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 4.8))
+    for k in range(f.shape[1]):
+        label = f"mode {k + 1} ({np.median(f[:, k]):.0f} Hz)"
+        ax1.plot(pos, ph[:, k], "o-", ms=3, label=label)
+        ax2.semilogy(pos, f[:, k], "o-", ms=3, label=label)
+    lo, hi = 45 * np.floor(ph.min() / 45), 45 * np.ceil(ph.max() / 45)
+    ax1.set_ylim(lo - 10, hi + 10)
+    ax1.set_yticks(np.arange(lo, hi + 1, 45))
+    for ref in np.arange(-90 - 360 * 2, hi + 1, 180):
+        if lo <= ref <= hi:
+            ax1.axhline(ref, color="k", lw=0.6, ls=":")
+    ax1.set_xlabel(r"table position $Y_{table}$ (mm)")
+    ax1.set_ylabel("resonant phase (°)")
+    ax1.set_title(f"Resonant phase of {title} (paper Fig. 12)\n"
+                  "dotted: −90° (in phase) and −270° (out of phase), modulo 360°", fontsize=10)
+    ax2.set_xlabel(r"table position $Y_{table}$ (mm)")
+    ax2.set_ylabel("natural frequency (Hz)")
+    ax2.set_title("Natural frequencies of the same modes")
+    for ax in (ax1, ax2):
+        ax.grid(True, which="both", alpha=0.3)
+    ax1.legend(fontsize=8, loc="lower left")
     fig.tight_layout()
     return fig
