@@ -13,7 +13,9 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Inexact
 
-__all__ = ["recip", "small_inv", "small_solve", "entries", "from_entries", "inv_entries", "mul", "add"]
+__all__ = [
+    "recip", "small_inv", "small_solve", "entries", "from_entries", "inv_entries", "mul", "add",
+]
 
 Entries = list[list]
 
