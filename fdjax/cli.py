@@ -1,8 +1,16 @@
-"""The ``fdjax`` command line: ``fdjax demo --out DIR``."""
+"""The ``fdjax`` command line.
+
+    fdjax demo    [--out DIR]   3M2S and reference-drive numbers, and the figures
+    fdjax figures [--out DIR]   the paper's dynamics figures (Figs. 2, 3, 5, 10, 11, 12)
+    fdjax modes   [--out DIR] [--positions N] [--n-modes N] [--source fit|model]
+                                modes of h21 over the travel: table, CSV and JSON
+"""
 
 from __future__ import annotations
 
 import argparse
+import csv
+import json
 import os
 import sys
 
@@ -14,58 +22,129 @@ def _peaks(f, a, fmin, fmax):
     return f[k[(f[k] >= fmin) & (f[k] <= fmax)]]
 
 
-def demo(out: str) -> dict:
-    """The 3M2S and the reference drive: numbers printed, figures written to ``out``."""
+def three_mass_figures(out: str) -> np.ndarray:
+    """Figs. 2, 3 and 5 of the 3M2S; returns its natural frequencies (Hz)."""
     import fdjax
     from fdjax import plots
 
-    os.makedirs(out, exist_ok=True)
     model = fdjax.three_mass()
-    fn, _ = model.modes()
+    fn = np.asarray(model.modes()[0])
     f3 = np.geomspace(10.0, 1000.0, 4000)
-    H3 = np.asarray(model.frf(f3))
-    print("3M2S (paper Sec. 2): natural frequencies "
-          + ", ".join(f"{x:.1f} Hz" for x in np.asarray(fn)[1:]))
-    plots.plot_three_mass_frf(f3, H3, np.asarray(fn)).savefig(
+    plots.plot_three_mass_frf(f3, np.asarray(model.frf(f3)), fn).savefig(
         os.path.join(out, "fig2_three_mass_frf.png"), dpi=120)
-    # Fig. 3: deflection shapes, the column F1 of the receptance read at each resonance
-    # (imaginary part: the resonant response) and far below (real part: rigid-body motion)
-    fr = np.asarray(fn)[1:]
+    # Fig. 3: the column F1 of the receptance read at each resonance (imaginary part: the
+    # resonant response) and far below (real part: the rigid-body motion)
+    fr = fn[1:]
     at = np.asarray(model.frf(np.concatenate([[0.5], fr])))[:, :, 0]
     shapes = np.stack([at[0].real, at[1].imag, at[2].imag])
-    plots.plot_deflection_shapes(
-        shapes, ["rigid motion"] + [f"mode {k + 1}: {x:.1f} Hz" for k, x in enumerate(fr)]
-    ).savefig(os.path.join(out, "fig3_deflection_shapes.png"), dpi=120)
+    labels = ["rigid motion"] + [f"mode {k + 1}: {x:.1f} Hz" for k, x in enumerate(fr)]
+    plots.plot_deflection_shapes(shapes, labels).savefig(
+        os.path.join(out, "fig3_deflection_shapes.png"), dpi=120)
     fv = np.linspace(60.0, 250.0, 4000)
     Hv = np.asarray(model.frf(fv))
     plots.plot_velocity_nyquist(fv, Hv[:, 0, 0], Hv[:, 1, 0]).savefig(
         os.path.join(out, "fig5_velocity_nyquist.png"), dpi=120)
+    return fn
+
+
+def drive_figures(out: str, n_positions: int = 61) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Figs. 10, 11 and 12 of the reference drive; returns (positions, freq, H)."""
+    import fdjax
+    from fdjax import plots
 
     drive = fdjax.reference_drive()
-    pos = np.linspace(0.1, 0.7, 61)
+    lo, hi = drive.travel_m
+    pos = np.linspace(lo, hi, n_positions)
     f = np.geomspace(5.0, 3000.0, 1500)
     H = np.asarray(drive.frf(pos, f))
-    print("Reference drive, peaks of |h21| = |x2/T1| (Hz):")
-    for p in (0, 30, 60):
-        pk = _peaks(f, np.abs(H[p, :, 1, 0]), 20.0, 3000.0)
-        print(f"  Y_table = {pos[p] * 1e3:5.0f} mm: " + ", ".join(f"{x:7.1f}" for x in pk))
-    fam = np.linspace(0, 60, 7).astype(int)
+    fam = np.linspace(0, n_positions - 1, 7).round().astype(int)
     plots.plot_frf_family(pos[fam], f, H[fam]).savefig(
         os.path.join(out, "fig10_frf_family.png"), dpi=110)
     plots.plot_frf_cloud(pos, f, H[:, :, 1, 0]).savefig(
         os.path.join(out, "fig11_h21_cloud.png"), dpi=120)
+    p12 = pos[:: max(1, n_positions // 31)]
+    modes = fdjax.track_drive_modes(fdjax.drive_modes(drive, p12, n_modes=6))
+    plots.plot_resonant_phase(p12, modes.frequency_hz, modes.phase_deg).savefig(
+        os.path.join(out, "fig12_resonant_phase.png"), dpi=110)
+    return pos, f, H
+
+
+def demo(out: str) -> None:
+    """The 3M2S and the reference drive: numbers printed, figures written to ``out``."""
+    os.makedirs(out, exist_ok=True)
+    fn = three_mass_figures(out)
+    print("3M2S (paper Sec. 2): natural frequencies " + ", ".join(f"{x:.1f} Hz" for x in fn[1:]))
+    pos, f, H = drive_figures(out)
+    print("Reference drive, peaks of |h21| = |x2/T1| (Hz):")
+    for p in (0, len(pos) // 2, len(pos) - 1):
+        pk = _peaks(f, np.abs(H[p, :, 1, 0]), 20.0, 3000.0)
+        print(f"  Y_table = {pos[p] * 1e3:5.0f} mm: " + ", ".join(f"{x:7.1f}" for x in pk))
     print(f"figures written to {out}/")
-    return {"three_mass_hz": np.asarray(fn)[1:].tolist()}
+
+
+def modes(out: str | None, n_positions: int, n_modes: int, source: str) -> dict:
+    """Modes of h21 over the travel, identified from the FRF (``fit``) or the twin (``model``)."""
+    import fdjax
+
+    drive = fdjax.reference_drive()
+    lo, hi = drive.travel_m
+    pos = np.linspace(lo, hi, n_positions)
+    if source == "fit":
+        f = np.geomspace(10.0, 2500.0, 2000)
+        H = np.asarray(drive.frf(pos, f))[:, :, 1, 0]
+        result = fdjax.track_modes(fdjax.identify_modes_batched(f, H, n_modes, throw=False))
+    else:
+        result = fdjax.track_drive_modes(fdjax.drive_modes(drive, pos, n_modes=n_modes))
+    fr, z, ph = (np.asarray(x) for x in (result.frequency_hz, result.damping, result.phase_deg))
+    rows = [
+        {"position_mm": round(float(pos[i]) * 1e3, 3), "mode": k + 1,
+         "frequency_hz": float(fr[i, k]), "damping": float(z[i, k]), "phase_deg": float(ph[i, k])}
+        for i in range(len(pos)) for k in range(fr.shape[1])
+    ]
+    how = "identified from the FRF" if source == "fit" else "eigen-analysis of the twin"
+    print(f"Modes of h21 = x2/T1 ({how}); f in Hz, zeta, resonant phase in degrees:")
+    print(" Y (mm) " + "".join(f"| mode {k + 1}:   f   zeta    phase " for k in range(fr.shape[1])))
+    for i in range(len(pos)):
+        print(f"{pos[i] * 1e3:7.0f} " + "".join(
+            f"| {fr[i, k]:11.1f} {z[i, k]:6.4f} {ph[i, k]:7.1f} " for k in range(fr.shape[1])))
+    if out:
+        os.makedirs(out, exist_ok=True)
+        with open(os.path.join(out, "modes.csv"), "w", newline="") as fh:
+            w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+            w.writeheader()
+            w.writerows(rows)
+        with open(os.path.join(out, "modes.json"), "w") as fh:
+            json.dump({"entry": "h21 = x2/T1", "source": source, "modes": rows}, fh, indent=1)
+        print(f"written {out}/modes.csv and {out}/modes.json")
+    return {"positions_m": pos, "frequency_hz": fr, "damping": z, "phase_deg": ph}
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="fdjax", description=__doc__)
+    parser = argparse.ArgumentParser(prog="fdjax", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
-    p = sub.add_parser("demo", help="3M2S and reference-drive FRFs with figures")
+    p = sub.add_parser("demo", help="3M2S and reference-drive numbers with figures")
     p.add_argument("--out", default="build/demo", help="output folder (default build/demo)")
+    p = sub.add_parser("figures", help="the paper's dynamics figures")
+    p.add_argument("--out", default="build/figures", help="output folder")
+    p = sub.add_parser("modes", help="modes of h21 over the travel (table, CSV, JSON)")
+    p.add_argument("--out", default=None, help="folder for modes.csv and modes.json")
+    p.add_argument("--positions", type=int, default=13, help="positions over the travel")
+    p.add_argument("--n-modes", type=int, default=6, help="modes to identify")
+    p.add_argument("--source", choices=("fit", "model"), default="fit",
+                   help="identify from the FRF (fit) or eigen-analysis of the twin (model)")
     args = parser.parse_args(argv)
     if args.command == "demo":
         demo(args.out)
+    elif args.command == "figures":
+        os.makedirs(args.out, exist_ok=True)
+        three_mass_figures(args.out)
+        drive_figures(args.out)
+        print(f"figures written to {args.out}/")
+    elif args.command == "modes":
+        if args.positions < 2 or args.n_modes < 1:
+            parser.error("--positions must be ≥ 2 and --n-modes ≥ 1")
+        modes(args.out, args.positions, args.n_modes, args.source)
     return 0
 
 

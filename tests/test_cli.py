@@ -9,9 +9,23 @@ def test_demo_writes_figures(tmp_path, capsys):
     out = tmp_path / "demo"
     assert cli.main(["demo", "--out", str(out)]) == 0
     for name in ("fig2_three_mass_frf.png", "fig3_deflection_shapes.png",
-                 "fig5_velocity_nyquist.png", "fig10_frf_family.png", "fig11_h21_cloud.png"):
+                 "fig5_velocity_nyquist.png", "fig10_frf_family.png", "fig11_h21_cloud.png",
+                 "fig12_resonant_phase.png"):
         path = out / name
         assert path.exists() and os.path.getsize(path) > 10_000, name
     text = capsys.readouterr().out
     assert "103.7 Hz, 154.5 Hz" in text
     assert "Y_table =   100 mm" in text
+
+
+def test_modes_writes_table(tmp_path, capsys):
+    import json
+
+    assert cli.main(["modes", "--out", str(tmp_path), "--positions", "3", "--n-modes", "4",
+                     "--source", "model"]) == 0
+    data = json.loads((tmp_path / "modes.json").read_text())
+    assert len(data["modes"]) == 12
+    first = data["modes"][0]
+    assert first["position_mm"] == 100.0 and 100.0 < first["frequency_hz"] < 200.0
+    assert (tmp_path / "modes.csv").read_text().startswith("position_mm,mode,frequency_hz")
+    assert "Modes of h21" in capsys.readouterr().out
