@@ -164,8 +164,8 @@ def drive_modes(
     """The lowest ``n_modes`` flexible modes of one FRF entry of the drive at a position.
 
     Exact eigen-analysis of the finite-element twin (see the module docstring); the default
-    entry is h21 = x2/T1, the paper's Table 1 and Fig. 12.  Differentiable and ``vmap``-able
-    over positions.
+    entry is h21 = x2/T1, the paper's Table 1 and Fig. 12.  Differentiable; a 1-D
+    ``position_m`` runs one compiled loop over the positions (returned with a leading axis).
     """
     out = _channel(output, OUTPUTS, "output")
     inp = _channel(input, INPUTS, "input")
@@ -193,9 +193,11 @@ def _modes_jit(fe, out, inp, n_modes):
 def _modes_batch(drive, pos, out, inp, n_modes, n_elements):
     from ._statespace import _assemble
 
-    return jax.vmap(
-        lambda p: _modes_from_fe(_assemble(drive, p, n_elements, True), out, inp, n_modes)
-    )(pos)
+    # lax.map, not vmap: a batched non-symmetric eig on the CPU has been seen to dead-lock
+    # (XLA:CPU, jax 0.10); one eig per position inside a compiled loop is as fast here.
+    return jax.lax.map(
+        lambda p: _modes_from_fe(_assemble(drive, p, n_elements, True), out, inp, n_modes), pos
+    )
 
 
 def track_drive_modes(

@@ -94,7 +94,7 @@ class BallScrewDrive(eqx.Module):
         """
         (h11, h1l, hll), ha, hs = self.substructure_receptances(position_m, omega)
         Y = block_diagonal([[h11, h1l], [h1l, hll]], [[ha]], hs)
-        B = [[0, -self.screw.ratio.astype(jnp.complex128), -1.0, 1.0, 0, 0]]
+        B = [[0, -jnp.asarray(self.screw.ratio).astype(jnp.complex128), -1.0, 1.0, 0, 0]]
         joint = [[recip(self.nut.dynamic_stiffness(omega))]]
         return couple_entries(Y, B, joint)
 
