@@ -949,6 +949,10 @@ def _map_positions(freq_hz, frf, weights, initial, n_modes, batch_size, options)
         h, w, init = args
         return identify_modes(freq_hz, h, n_modes, weights=w, initial=init, **options)
 
+    # batch_size=1 maps without vmap: a batched non-symmetric eig (the vector-fitting zeros)
+    # has been seen to dead-lock on XLA:CPU (jax 0.10).
+    if batch_size == 1:
+        return jax.lax.map(one, (frf, weights, initial))
     return jax.lax.map(one, (frf, weights, initial), batch_size=batch_size)
 
 
