@@ -1,4 +1,7 @@
-"""Quickstart: the 3M2S example and the reference ball-screw drive (run: python examples/quickstart.py)."""
+"""Quickstart: the 3M2S example and the reference ball-screw drive.
+
+Run: python examples/quickstart.py
+"""
 
 import jax
 import jax.numpy as jnp
