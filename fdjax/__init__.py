@@ -38,6 +38,25 @@ from ._filters import (
     NotchFilter as NotchFilter,
     PeakFilter as PeakFilter,
 )
+from ._loop import (
+    CLOSED_LOOP_INPUTS as CLOSED_LOOP_INPUTS,
+    CLOSED_LOOP_OUTPUTS as CLOSED_LOOP_OUTPUTS,
+    DEFAULT_PADE_ORDER as DEFAULT_PADE_ORDER,
+    AbstractLoop as AbstractLoop,
+    ClosedLoop as ClosedLoop,
+    DoubleLoop as DoubleLoop,
+    LoopMargins as LoopMargins,
+    Margins as Margins,
+    OpenLoop as OpenLoop,
+    PIDLoop as PIDLoop,
+    Stability as Stability,
+    check_stability as check_stability,
+    closed_loop as closed_loop,
+    loop_margins as loop_margins,
+    open_loop as open_loop,
+    pade as pade,
+    stability_margins as stability_margins,
+)
 from ._lumped import (
     LumpedModel as LumpedModel,
     chain_model as chain_model,

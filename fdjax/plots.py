@@ -24,6 +24,7 @@ __all__ = [
     "plot_frf_family",
     "plot_frf_cloud",
     "plot_resonant_phase",
+    "plot_peak_filter_effect",
 ]
 
 _OUT_LABEL = {"theta1": r"$\theta_1$", "x2": r"$x_2$", "x3": r"$x_3$"}
@@ -290,7 +291,9 @@ def plot_peak_filter_effect(
     mag.legend(handles=handles, title=r"$Y_{table}$", fontsize=7, ncol=3, loc="lower left")
     mag.set_ylabel("|L| (dB)")
     pha.set_ylabel("arg L (°)")
-    pha.yaxis.set_major_locator(plt.MultipleLocator(90))
+    span = hi - lo
+    pha.yaxis.set_major_locator(plt.MultipleLocator(90 if span <= 540 else 180 if span <= 1080
+                                                    else 360))
     pha.set_xlabel("frequency (Hz)")
     for ax in (mag, pha):
         ax.grid(True, which="both", alpha=0.3)
