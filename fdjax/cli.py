@@ -1,7 +1,7 @@
 """The ``fdjax`` command line.
 
     fdjax demo    [--out DIR]   3M2S and reference-drive numbers, and the figures
-    fdjax figures [--out DIR]   the paper's dynamics figures (Figs. 2, 3, 5, 10, 11, 12)
+    fdjax figures [--out DIR]   the paper's figures so far (Figs. 2, 3, 5, 10, 11, 12, 14)
     fdjax modes   [--out DIR] [--positions N] [--n-modes N] [--source fit|model]
                                 modes of h21 over the travel: table, CSV and JSON
 """
@@ -69,12 +69,31 @@ def drive_figures(out: str, n_positions: int = 61) -> tuple[np.ndarray, np.ndarr
     return pos, f, H
 
 
+def loop_figures(out: str, pos: np.ndarray, f: np.ndarray, H: np.ndarray) -> None:
+    """Fig. 14: the default double loop without and with a peak filter on the axial mode.
+
+    Hand-set filter (K = 0.5, 115 Hz, ξ = 0.5, φ = −75°) until the tuning issue replaces it.
+    """
+    import fdjax
+    from fdjax import plots
+
+    fam = np.linspace(0, len(pos) - 1, 7).round().astype(int)
+    peak = fdjax.PeakFilter(0.5, 2 * np.pi * 115.0, 0.5, np.radians(-75.0))
+    without = fdjax.open_loop(fdjax.DoubleLoop(), H[fam], f)
+    with_pf = fdjax.open_loop(fdjax.DoubleLoop(mcm=fdjax.MCM(peak)), H[fam], f)
+    plots.plot_peak_filter_effect(
+        f, pos[fam], without.outer, with_pf.outer, loop_label="outer (position) loop $L_p$",
+        radius=1.6, band_hz=(100.0, 145.0),
+    ).savefig(os.path.join(out, "fig14_peak_filter.png"), dpi=90)
+
+
 def demo(out: str) -> None:
     """The 3M2S and the reference drive: numbers printed, figures written to ``out``."""
     os.makedirs(out, exist_ok=True)
     fn = three_mass_figures(out)
     print("3M2S (paper Sec. 2): natural frequencies " + ", ".join(f"{x:.1f} Hz" for x in fn[1:]))
     pos, f, H = drive_figures(out)
+    loop_figures(out, pos, f, H)
     print("Reference drive, peaks of |h21| = |x2/T1| (Hz):")
     for p in (0, len(pos) // 2, len(pos) - 1):
         pk = _peaks(f, np.abs(H[p, :, 1, 0]), 20.0, 3000.0)
@@ -139,7 +158,8 @@ def main(argv=None) -> int:
     elif args.command == "figures":
         os.makedirs(args.out, exist_ok=True)
         three_mass_figures(args.out)
-        drive_figures(args.out)
+        pos, f, H = drive_figures(args.out)
+        loop_figures(args.out, pos, f, H)
         print(f"figures written to {args.out}/")
     elif args.command == "modes":
         if args.positions < 2 or args.n_modes < 1:
