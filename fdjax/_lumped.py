@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Complex, Float
 
 from . import _checks
-from ._linalg import entries, inv_entries, small_inv, stack_entries
+from ._linalg import entries, inv_entries, small_inv
 
 __all__ = ["LumpedModel", "chain_model", "three_mass"]
 
@@ -45,6 +48,14 @@ class LumpedModel(eqx.Module):
                     f"`LumpedModel({name}=...)` must have shape ({n}, {n}), got {a.shape}"
                 )
             _checks.finite(a, f"LumpedModel({name}=...)")
+        for name in ("stiffness", "damping"):
+            a = getattr(self, name)
+            if _checks.is_concrete(a) and not np.allclose(np.asarray(a), np.asarray(a).T,
+                                                          rtol=1e-12, atol=0):
+                raise ValueError(
+                    f"`LumpedModel({name}=...)` must be symmetric (a reciprocal structure), "
+                    f"got max |A − Aᵀ| = {np.max(np.abs(np.asarray(a) - np.asarray(a).T)):.3g}"
+                )
         if _checks.is_concrete(self.mass):
             m = np.asarray(self.mass)
             if not np.allclose(m, m.T) or np.any(np.linalg.eigvalsh(0.5 * (m + m.T)) <= 0):
@@ -72,9 +83,16 @@ class LumpedModel(eqx.Module):
     def frf(self, freq_hz: Float[ArrayLike, " freq"]) -> Complex[Array, "freq n n"]:
         """Receptance matrix ``H[f, i, j] = x_i / F_j`` (m/N) on a frequency grid in Hz."""
         freq_hz = _checks.frequency_grid(freq_hz, "LumpedModel.frf(freq_hz=...)")
-        return _checks.finite_output(
-            stack_entries(_frf_entries(self, freq_hz)), "LumpedModel.frf(freq_hz=...)"
-        )
+        upper, finite = _frf_upper(self, freq_hz)
+        H = _mirror(upper, self.size)
+        if _checks.is_concrete(finite):
+            if not bool(finite):
+                raise ValueError(
+                    "`LumpedModel.frf(...)` produced a non-finite result; check the parameters "
+                    "for NaN/inf"
+                )
+            return H
+        return _checks.finite_output(H, "LumpedModel.frf(...)")
 
     def modes(self) -> tuple[Float[Array, " n"], Float[Array, "n n"]]:
         """Undamped normal modes: natural frequencies (Hz, ascending) and mass-normalised shapes.
@@ -90,8 +108,28 @@ class LumpedModel(eqx.Module):
 
 
 @eqx.filter_jit
-def _frf_entries(model: LumpedModel, freq_hz):
-    return inv_entries(entries(model.dynamic_stiffness(2 * jnp.pi * freq_hz)))
+def _frf_upper(model: LumpedModel, freq_hz):
+    # The receptance of a symmetric model is symmetric (reciprocity): compute the upper
+    # triangle only, and the finiteness flag in the same program.
+    inv = inv_entries(entries(model.dynamic_stiffness(2 * jnp.pi * freq_hz)))
+    n = model.size
+    upper = [inv[i][j] for i in range(n) for j in range(i, n)]
+    finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in upper]))
+    return upper, finite
+
+
+@functools.partial(jax.jit, static_argnums=1)
+def _mirror(upper, n: int):
+    # A second compiled program interleaves the planes into (freq, n, n), mirroring the
+    # upper triangle; fused with the algebra above, XLA would recompute it per entry.
+    index = {}
+    k = 0
+    for i in range(n):
+        for j in range(i, n):
+            index[i, j] = index[j, i] = k
+            k += 1
+    flat = [upper[index[i, j]] for i in range(n) for j in range(n)]
+    return jnp.stack(flat, -1).reshape(*upper[0].shape, n, n)
 
 
 def chain_model(
