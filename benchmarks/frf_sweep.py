@@ -60,8 +60,10 @@ def _np_line(rod, w, l, supports):
     return diag, [ea, eb]
 
 
-def numpy_drive_frf(d, pos, freq):
-    """H_M (n_pos, n_freq, 3, 2) in plain NumPy with broadcasting."""
+def _np_lines(d, pos, freq):
+    """Substructure dynamic stiffness of the drive on the grid, in NumPy: the rotary line
+    (θ1, θ0, θl, θL), the axial line (u0, ul, uL), the carriage's axial and pitch terms, the
+    transmission ratio and the nut joint's dynamic stiffness."""
     g = lambda x: float(x)  # noqa: E731
     w = 2 * np.pi * freq[None, :]
     l = pos[:, None] + g(d.nut_offset)
@@ -73,15 +75,27 @@ def numpy_drive_frf(d, pos, freq):
            g(s.retardation), g(s.length))
     r, a, c, nut = d.rotary, d.axial, d.carriage, d.nut
     iw = 1j * w
-    # rotary line (θ1, θ0, θl, θL)
     (d0, d1, d2), (e0, e1) = _np_line(
         tors, w, l,
         (iw * g(r.drive_end_damping) - w**2 * g(r.drive_end_inertia),
          iw * g(r.free_end_damping) - w**2 * g(r.free_end_inertia)))
     kc = g(r.coupling_stiffness) + iw * g(r.coupling_damping)
     dm = kc - w**2 * g(r.motor_inertia) + iw * g(r.motor_damping)
-    diag = [dm, d0 + kc, d1, d2]
-    off = [-kc, e0, e1]
+    rotary = ([dm, d0 + kc, d1, d2], [-kc, e0, e1])
+    axial = _np_line(
+        axi, w, l,
+        (g(a.drive_end_stiffness) + iw * g(a.drive_end_damping) - w**2 * g(a.drive_end_mass),
+         g(a.free_end_stiffness) + iw * g(a.free_end_damping)))
+    ya = 1 / (-(w**2) * g(c.mass) + iw * g(c.axial_damping))
+    yp = 1 / (g(c.pitch_stiffness) - w**2 * g(c.pitch_inertia) + iw * g(c.pitch_damping))
+    heights = (g(c.nut_height), g(c.scale_height), g(c.tool_height))
+    kj = g(nut.stiffness) + iw * g(nut.damping)
+    return rotary, axial, ya, yp, heights, g(s.lead) / (2 * np.pi), kj
+
+
+def numpy_drive_frf(d, pos, freq):
+    """H_M (n_pos, n_freq, 3, 2) in plain NumPy with broadcasting, fdjax's closed forms."""
+    (diag, off), ((a0, a1, a2), (f0, f1)), ya, yp, (hn, h2, h3), isc, kj = _np_lines(d, pos, freq)
     A = [diag[0]]
     for i in range(1, 4):
         A.append(diag[i] - off[i - 1] ** 2 / A[i - 1])
@@ -91,20 +105,10 @@ def numpy_drive_frf(d, pos, freq):
     h11 = 1 / (A[0] + Bs[0] - diag[0])
     hll = 1 / (A[2] + Bs[2] - diag[2])
     h1l = hll * (-off[0] / A[0]) * (-off[1] / A[1])
-    # axial line (u0, ul, uL)
-    (a0, a1, a2), (f0, f1) = _np_line(
-        axi, w, l,
-        (g(a.drive_end_stiffness) + iw * g(a.drive_end_damping) - w**2 * g(a.drive_end_mass),
-         g(a.free_end_stiffness) + iw * g(a.free_end_damping)))
     ha = 1 / (a1 - f0**2 / a0 - f1**2 / a2)
-    # carriage
-    ya = 1 / (-(w**2) * g(c.mass) + iw * g(c.axial_damping))
-    yp = 1 / (g(c.pitch_stiffness) - w**2 * g(c.pitch_inertia) + iw * g(c.pitch_damping))
-    hn, h2, h3 = g(c.nut_height), g(c.scale_height), g(c.tool_height)
     hs = lambda i, j: ya + yp * i * j  # noqa: E731
     # LM-FBS at the nut, B = [0, −i_sc, −1, 1, 0, 0]
-    isc = g(s.lead) / (2 * np.pi)
-    bracket = isc**2 * hll + ha + hs(hn, hn) + 1 / (g(nut.stiffness) + iw * g(nut.damping))
+    bracket = isc**2 * hll + ha + hs(hn, hn) + 1 / kj
     u = [-isc * h1l, hs(h2, hn), hs(h3, hn)]  # (Y Bᵀ) rows θ1, x2, x3
     v = [-isc * h1l, hs(hn, h3)]  # (B Y) columns T1, F3
     y0 = [[h11, 0.0], [0.0, hs(h2, h3)], [0.0, hs(h3, h3)]]
@@ -130,40 +134,17 @@ def _np_tridiag(diag, off):
 def numpy_drive_frf_matrix(d, pos, freq):
     """The same H_M written the plain NumPy way: substructure receptances by ``np.linalg.inv``
     of their (batched) dynamic-stiffness matrices, then LM-FBS with batched matrix products."""
-    g = lambda x: float(x)  # noqa: E731
-    w = 2 * np.pi * freq[None, :]
-    l = pos[:, None] + g(d.nut_offset)
-    s = d.screw
-    polar, area = np.pi * g(s.diameter) ** 4 / 32, np.pi * g(s.diameter) ** 2 / 4
-    tors = (g(s.shear_modulus) * polar, g(s.density) * polar, g(s.loss_factor),
-            g(s.retardation), g(s.length))
-    axi = (g(s.youngs_modulus) * area, g(s.density) * area, g(s.loss_factor),
-           g(s.retardation), g(s.length))
-    r, a, c, nut = d.rotary, d.axial, d.carriage, d.nut
-    iw = 1j * w
-    (d0, d1, d2), (e0, e1) = _np_line(
-        tors, w, l,
-        (iw * g(r.drive_end_damping) - w**2 * g(r.drive_end_inertia),
-         iw * g(r.free_end_damping) - w**2 * g(r.free_end_inertia)))
-    kc = g(r.coupling_stiffness) + iw * g(r.coupling_damping)
-    dm = kc - w**2 * g(r.motor_inertia) + iw * g(r.motor_damping)
-    YR = np.linalg.inv(_np_tridiag([dm, d0 + kc, d1, d2], [-kc, e0, e1]))
-    (a0, a1, a2), (f0, f1) = _np_line(
-        axi, w, l,
-        (g(a.drive_end_stiffness) + iw * g(a.drive_end_damping) - w**2 * g(a.drive_end_mass),
-         g(a.free_end_stiffness) + iw * g(a.free_end_damping)))
-    YA = np.linalg.inv(_np_tridiag([a0, a1, a2], [f0, f1]))
-    ya = 1 / (-(w**2) * g(c.mass) + iw * g(c.axial_damping))
-    yp = 1 / (g(c.pitch_stiffness) - w**2 * g(c.pitch_inertia) + iw * g(c.pitch_damping))
-    h = np.array([g(c.nut_height), g(c.scale_height), g(c.tool_height)])
+    rotary, axial, ya, yp, heights, isc, kj = _np_lines(d, pos, freq)
+    YR = np.linalg.inv(_np_tridiag(*rotary))
+    YA = np.linalg.inv(_np_tridiag(*axial))
+    h = np.array(heights)
     shape = YR.shape[:-2]
     Y = np.zeros((*shape, 6, 6), complex)
     Y[..., :2, :2] = YR[..., [0, 2], :][..., :, [0, 2]]
     Y[..., 2, 2] = YA[..., 1, 1]
     Y[..., 3:, 3:] = (ya[..., None, None] + yp[..., None, None] * np.outer(h, h))
-    isc = g(s.lead) / (2 * np.pi)
     B = np.array([[0.0, -isc, -1.0, 1.0, 0.0, 0.0]])
-    Yj = (1 / (g(nut.stiffness) + iw * g(nut.damping)))[..., None, None]
+    Yj = (1 / kj)[..., None, None]
     YBt = Y @ B.T
     Yc = Y - YBt @ np.linalg.inv(B @ YBt + Yj) @ (B @ Y)
     return Yc[..., [0, 4, 5], :][..., :, [0, 5]]
