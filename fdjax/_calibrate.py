@@ -36,6 +36,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Float
 
+from . import _checks
 from ._drive import INPUTS, OUTPUTS, BallScrewDrive
 from ._statespace import DEFAULT_ELEMENTS, fe_matrices
 
@@ -175,13 +176,10 @@ def drive_modes(
         return _modes_jit(fe, out, inp, int(n_modes))
     if pos.ndim != 1:
         raise ValueError(f"`drive_modes(position_m=...)` must be a scalar or 1-D, got {pos.shape}")
-    for p in np.asarray(pos) if _is_concrete(pos) else ():
-        fe_matrices(drive, float(p), n_elements=1)  # validates each position (cheap)
+    lo, hi = drive.travel_m
+    pos = _checks.check(pos, lambda p: (p >= lo) & (p <= hi), "drive_modes(position_m=...)",
+                        f"inside the travel [{lo:.6g}, {hi:.6g}] m")
     return _modes_batch(drive, pos, out, inp, int(n_modes), int(n_elements))
-
-
-def _is_concrete(x) -> bool:
-    return not isinstance(x, jax.core.Tracer)
 
 
 @eqx.filter_jit
@@ -281,8 +279,7 @@ def _pair(modes: DriveModes, target: ModalData, visibility: float) -> Array:
 
 
 def _getter(path: str):
-    get = operator.attrgetter(path)
-    return get
+    return operator.attrgetter(path)
 
 
 def _to_unit(value, lo, hi, log):

@@ -68,6 +68,9 @@ def test_update_model_bad_input(drive):
         update_model(drive, data, {"nut.stifness": (1e8, 1e9)}, 0.2)
     with pytest.raises(ValueError, match=r"lo < hi"):
         update_model(drive, data, {"nut.stiffness": (1e9, 1e8)}, 0.2)
+    with pytest.raises(ValueError, match=r"drive_modes\(position_m=\.\.\.\)` must be inside the "
+                                         r"travel \[0.1, 0.7\] m, got 0.9 at index 1"):
+        drive_modes(drive, [0.2, 0.9], n_modes=2)
     with pytest.raises(ValueError, match=r"equal lengths"):
         ModalData([100.0, 200.0], [0.05], [-90.0])
 
