@@ -1,0 +1,390 @@
+r"""Reference motions r(t) for closed-loop simulation: jerk-limited moves (paper Figs. 16–17).
+
+A ``Trajectory`` is a piecewise-constant *jerk* j(t) on knots 0 = t_0 ≤ t_1 ≤ … ≤ t_k = T,
+integrated exactly three times from rest at the initial position r0. On segment i, with
+τ = t − t_i ∈ [0, h_i], h_i = t_{i+1} − t_i,
+
+    a(t) = a_i + j_i τ,
+    v(t) = v_i + a_i τ + j_i τ²/2,
+    r(t) = r_i + v_i τ + a_i τ²/2 + j_i τ³/6,
+
+and the states at the knots follow by evaluating these at τ = h_i (exact cubic integration):
+
+    a_{i+1} = a_i + j_i h_i,
+    v_{i+1} = v_i + a_i h_i + j_i h_i²/2,
+    r_{i+1} = r_i + v_i h_i + a_i h_i²/2 + j_i h_i³/6,      a_0 = v_0 = 0, r_0 = r0.
+
+So r is C² (position, velocity and acceleration continuous) and j is piecewise constant.
+Before t = 0 the trajectory rests at r0; after T it rests at r(T) (v = a = j = 0).
+
+``jerk_limited`` builds the classic seven-segment ("double S") point-to-point move of
+Biagiotti & Melchiorri, *Trajectory Planning for Automatic Machines and Robots* (Springer 2008),
+Sec. 3.4, for a move from rest to rest; ``reciprocating`` chains such moves into the short-stroke
+back-and-forth reference of the paper's Figs. 16–17; ``concatenate`` plays trajectories one after
+another. Units are SI: m, m/s, m/s², m/s³, s.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float
+
+from ._checks import check, finite, finite_output, is_concrete, nonnegative, positive
+
+__all__ = ["Trajectory", "concatenate", "jerk_limited", "reciprocating"]
+
+_COMPARE_ALL_MAX = 64  # segments up to which `evaluate` locates t by comparing with every knot
+
+
+def _real(value, where: str, ndim: int) -> Array:
+    """``value`` as a float64 array of rank ``ndim`` (shape and dtype facts only)."""
+    arr = jnp.asarray(value)
+    if jnp.issubdtype(arr.dtype, jnp.complexfloating):
+        raise ValueError(f"`{where}` must be real, got dtype {arr.dtype}")
+    if arr.ndim != ndim:
+        kind = "a scalar" if ndim == 0 else f"a {ndim}-D array"
+        raise ValueError(f"`{where}` must be {kind}, got shape {arr.shape}")
+    return arr.astype(jnp.float64)
+
+
+def _knots_ok(v):
+    """Elementwise: finite, first knot 0, each knot ≥ the previous one."""
+    xp = np if isinstance(v, np.ndarray) else jnp
+    prev = xp.concatenate([xp.zeros(1, v.dtype), v[:-1]])
+    first = xp.arange(v.shape[0]) == 0
+    return xp.isfinite(v) & (v >= prev) & (~first | (v == 0))
+
+
+class Trajectory(eqx.Module):
+    r"""A reference motion r(t) with piecewise-constant jerk, starting from rest at ``r0``.
+
+    On segment i (t_i ≤ t < t_{i+1}, τ = t − t_i) the motion is the exact cubic
+
+        r(t) = r_i + v_i τ + a_i τ²/2 + j_i τ³/6,   v = ṙ,  a = r̈,  j = j_i,
+
+    with the knot states (r_i, v_i, a_i) integrated from (r0, 0, 0) (see the module docstring).
+    For t < 0 it rests at r0 and for t > T = ``t_knots[-1]`` at r(T), with v = a = j = 0 (the
+    constructors below end every move at rest, so this keeps r, v, a continuous).
+
+    **Arguments:**
+
+    - ``t_knots``: knot times t_0 = 0 ≤ t_1 ≤ … ≤ t_k in s, shape (k+1,), k ≥ 1. Zero-length
+      segments are allowed (they are skipped).
+    - ``jerk``: the constant jerk of each segment in m/s³, shape (k,).
+    - ``r0``: initial position in m (the initial velocity and acceleration are 0).
+
+    The knot states are not stored: ``evaluate`` integrates them (O(k), one sequential scan),
+    then locates each time with ``searchsorted`` (O(log k); O(k) compares for k ≤ 64, which
+    compile faster) and evaluates one cubic. Stored as leaves they would go stale under
+    ``eqx.tree_at`` and cut the gradient w.r.t. ``jerk`` and ``t_knots``; computed on the fly,
+    r(t) is differentiable w.r.t. every leaf and w.r.t. t. ``evaluate`` is compiled once per
+    structure (k) and shape of t.
+    """
+
+    t_knots: Float[Array, " k1"]
+    jerk: Float[Array, " k"]
+    r0: Float[Array, ""]
+
+    def __init__(self, t_knots: ArrayLike, jerk: ArrayLike, r0: ArrayLike = 0.0):
+        t_knots = _real(t_knots, "Trajectory(t_knots=...)", 1)
+        jerk = _real(jerk, "Trajectory(jerk=...)", 1)
+        r0 = _real(r0, "Trajectory(r0=...)", 0)
+        if t_knots.shape[0] < 2:
+            raise ValueError(
+                "`Trajectory(t_knots=...)` must hold at least two knots (one segment), "
+                f"got shape {t_knots.shape}"
+            )
+        if jerk.shape[0] != t_knots.shape[0] - 1:
+            raise ValueError(
+                "`Trajectory(jerk=...)` must have one entry per segment "
+                f"(len(t_knots) - 1 = {t_knots.shape[0] - 1}), got shape {jerk.shape}"
+            )
+        self.t_knots = check(
+            t_knots, _knots_ok, "Trajectory(t_knots=...)", "finite, non-decreasing and start at 0"
+        )
+        self.jerk = finite(jerk, "Trajectory(jerk=...)")
+        self.r0 = finite(r0, "Trajectory(r0=...)")
+
+    @property
+    def duration(self) -> Float[Array, ""]:
+        """T = t_k, the time at which the motion ends (s)."""
+        return self.t_knots[-1]
+
+    @property
+    def num_segments(self) -> int:
+        """k, the number of constant-jerk segments (static)."""
+        return self.jerk.shape[0]
+
+    def knot_states(self) -> tuple[Float[Array, " k1"], Float[Array, " k1"], Float[Array, " k1"]]:
+        r"""(r_i, v_i, a_i) at every knot, by exact cubic integration from (r0, 0, 0).
+
+        a_{i+1} = a_i + j_i h_i,
+        v_{i+1} = v_i + a_i h_i + j_i h_i²/2,
+        r_{i+1} = r_i + v_i h_i + a_i h_i²/2 + j_i h_i³/6,    (r_0, v_0, a_0) = (r0, 0, 0).
+        """
+        return _knot_states(self)
+
+    def evaluate(
+        self, t: ArrayLike
+    ) -> tuple[Float[Array, "*t"], Float[Array, "*t"], Float[Array, "*t"], Float[Array, "*t"]]:
+        r"""Position, velocity, acceleration and jerk (r, ṙ, r̈, j) at times ``t`` (s), any shape.
+
+        With i the segment holding t (the last one among equal knots) and τ = t − t_i:
+        r = r_i + v_i τ + a_i τ²/2 + j_i τ³/6, v = v_i + a_i τ + j_i τ²/2, a = a_i + j_i τ.
+        Outside [0, T] the motion rests (v = a = j = 0) at r0 before and at r(T) after.
+        """
+        t = jnp.asarray(t)
+        if jnp.issubdtype(t.dtype, jnp.complexfloating):
+            raise ValueError(f"`Trajectory.evaluate(t=...)` must be real, got dtype {t.dtype}")
+        return _evaluate(self, t.astype(jnp.float64))
+
+    def sample(self, t: ArrayLike) -> Float[Array, "*t 3"]:
+        """(r, ṙ, r̈) at times ``t`` stacked on a last axis of size 3, e.g. a simulation input.
+
+        For n samples at a step dt use ``t = dt * jnp.arange(n)``.
+        """
+        r, v, a, _ = self.evaluate(t)
+        return jnp.stack([r, v, a], axis=-1)
+
+
+def _step(state, seg):
+    """One segment of exact cubic integration: (r, v, a) at t_i → at t_{i+1}."""
+    r, v, a = state
+    h, j = seg
+    new = (r + h * (v + h * (a / 2 + h * j / 6)), v + h * (a + h * j / 2), a + h * j)
+    return new, new
+
+
+@eqx.filter_jit
+def _knot_states(traj: Trajectory):
+    # A sequential scan is the recurrence itself (and compiles far faster than cumsum on CPU).
+    zero = jnp.zeros((), jnp.float64)
+    start = (traj.r0, zero, zero)
+    _, states = jax.lax.scan(_step, start, (jnp.diff(traj.t_knots), traj.jerk))
+    return tuple(jnp.concatenate([s0[None], x]) for s0, x in zip(start, states))
+
+
+@eqx.filter_jit
+def _evaluate(traj: Trajectory, t: Float[Array, "*t"]):
+    """The body of ``Trajectory.evaluate``, compiled once per structure and shape of ``t``."""
+    rk, vk, ak = _knot_states(traj)
+    k = traj.num_segments
+    # One row per segment, gathered once: (t_i, r_i, v_i, a_i, j_i).
+    rows = jnp.stack([traj.t_knots[:-1], rk[:-1], vk[:-1], ak[:-1], traj.jerk], axis=-1)
+    tc = jnp.clip(t, 0.0, traj.duration)
+    # The last segment starting at or before tc (zero-length segments are skipped). For the
+    # few knots of a move, comparing with all of them (O(k) per time) compiles fastest; long
+    # sequences use the binary search (O(log k)).
+    method = "compare_all" if k <= _COMPARE_ALL_MAX else "scan_unrolled"
+    i = jnp.searchsorted(traj.t_knots, tc, side="right", method=method) - 1
+    row = rows[jnp.clip(i, 0, k - 1)]
+    tau = tc - row[..., 0]
+    ri, vi, ai, ji = row[..., 1], row[..., 2], row[..., 3], row[..., 4]
+    r = ri + tau * (vi + tau * (ai / 2 + tau * ji / 6))
+    v = vi + tau * (ai + tau * ji / 2)
+    a = ai + tau * ji
+    # At rest outside [0, T]: r is already held by the clip; v, a, j are switched off.
+    moving = ((t >= 0.0) & (t <= traj.duration)).astype(t.dtype)
+    return r, v * moving, a * moving, ji * moving
+
+
+def _scalar(value, where: str) -> float:
+    """A concrete real scalar as a Python float (the profile's structure is static)."""
+    if not is_concrete(value):
+        raise ValueError(
+            f"`{where}` must be a concrete number (the segment durations are computed in Python "
+            "when the trajectory is built), got a traced value; build the trajectory outside jit"
+        )
+    arr = np.asarray(value)
+    if not np.isrealobj(arr):
+        raise ValueError(f"`{where}` must be real, got dtype {arr.dtype}")
+    if arr.shape != ():
+        raise ValueError(f"`{where}` must be a scalar, got shape {arr.shape}")
+    return float(arr)
+
+
+def _double_s_durations(h: float, v: float, a: float, j: float) -> tuple[float, float, float]:
+    r"""(T_j, T_c, T_v): jerk, constant-acceleration and cruise durations for a rest-to-rest move.
+
+    Accelerating from rest to a peak velocity v_p under the limits a, j takes
+    T_j = a/j, T_a = T_j + v_p/a when v_p j ≥ a² (a is reached) and T_j = √(v_p/j), T_a = 2T_j
+    otherwise; the acceleration phase covers v_p T_a/2, so both ramps together cover
+    D(v_p) = v_p T_a. If h ≥ D(v) the move cruises at v for T_v = (h − D(v))/v; otherwise v_p < v
+    solves D(v_p) = h, which reaches a iff h ≥ D(a²/j) = 2a³/j².
+    """
+    if v * j >= a * a:
+        tj = a / j
+        ta = tj + v / a
+    else:
+        tj = math.sqrt(v / j)
+        ta = 2.0 * tj
+    reach = v * ta
+    if h >= reach:
+        return tj, ta - 2.0 * tj, (h - reach) / v
+    if h >= 2.0 * a**3 / j**2:
+        # v_p²/a + v_p a/j − h = 0; the root is well conditioned (√(a⁴/j² + 4ha) ≥ 3a²/j).
+        vp = (math.sqrt((a * a / j) ** 2 + 4.0 * h * a) - a * a / j) / 2.0
+        tj = a / j
+        return tj, vp / a - tj, 0.0
+    return (h / (2.0 * j)) ** (1.0 / 3.0), 0.0, 0.0
+
+
+def jerk_limited(
+    distance: float,
+    v_max: float,
+    a_max: float,
+    j_max: float,
+    *,
+    start: float = 0.0,
+    dwell: float = 0.0,
+) -> Trajectory:
+    r"""The seven-segment jerk-limited ("double S") move by ``distance`` m, from rest to rest.
+
+    Jerk sequence s·(+J, 0, −J, 0, −J, 0, +J) with s = sign(distance), J = ``j_max``, and
+    durations (T_j, T_c, T_j, T_v, T_j, T_c, T_j) (Biagiotti & Melchiorri 2008, Sec. 3.4, with
+    zero initial and final velocity). With h = |distance|, v = ``v_max``, a = ``a_max``:
+
+    * acceleration phase to v: T_j = a/j, T_a = a/j + v/a if v j ≥ a² (a is reached), else
+      T_j = √(v/j), T_a = 2T_j (triangular acceleration); it covers v T_a/2;
+    * v is reached if h ≥ v T_a: cruise T_v = h/v − T_a, total T = h/v + T_a, i.e.
+      T = h/v + v/a + a/j (full seven segments) or T = h/v + 2√(v/j) (a not reached);
+    * otherwise no cruise (T_v = 0) and the peak velocity v_p < v:
+      if h ≥ 2a³/j², a is reached, T_j = a/j, v_p = (√(a⁴/j² + 4ha) − a²/j)/2,
+      T_a = a/j + v_p/a, T = 2T_a = a/j + √(a²/j² + 4h/a);
+      else neither limit is reached, T_j = (h/(2j))^{1/3}, T_a = 2T_j, T = 4T_j.
+
+    T_c = T_a − 2T_j. Peaks: |v| ≤ v, |a| = j T_j ≤ a, |j| = J.
+
+    **Arguments:**
+
+    - ``distance``: signed move length in m (negative moves backwards; 0 gives a pure dwell).
+    - ``v_max``, ``a_max``, ``j_max``: positive limits in m/s, m/s², m/s³.
+    - ``start``: initial position in m.
+    - ``dwell``: rest time appended after the move in s (a zero-jerk segment).
+
+    **Returns:** a ``Trajectory`` with 8 segments (zero-length ones where a phase is absent), of
+    duration T + ``dwell``, ending at ``start + distance``.
+    """
+    d = _scalar(distance, "jerk_limited(distance=...)")
+    finite(d, "jerk_limited(distance=...)")
+    v = positive(_scalar(v_max, "jerk_limited(v_max=...)"), "jerk_limited(v_max=...)")
+    a = positive(_scalar(a_max, "jerk_limited(a_max=...)"), "jerk_limited(a_max=...)")
+    j = positive(_scalar(j_max, "jerk_limited(j_max=...)"), "jerk_limited(j_max=...)")
+    r0 = _scalar(start, "jerk_limited(start=...)")
+    finite(r0, "jerk_limited(start=...)")
+    rest = _scalar(dwell, "jerk_limited(dwell=...)")
+    nonnegative(rest, "jerk_limited(dwell=...)")
+
+    tj, tc, tv = _double_s_durations(abs(d), v, a, j)
+    durations = np.array([tj, tc, tj, tv, tj, tc, tj, rest], dtype=np.float64)
+    finite_output(durations, "jerk_limited(...)")
+    s = float(np.sign(d))
+    jerks = s * j * np.array([1.0, 0.0, -1.0, 0.0, -1.0, 0.0, 1.0, 0.0])
+    t_knots = np.concatenate([[0.0], np.cumsum(durations)])
+    return Trajectory(t_knots=t_knots, jerk=jerks, r0=r0)
+
+
+def _at_rest(traj: Trajectory) -> bool:
+    """Whether a concrete trajectory ends at rest, to 1e-9 of its velocity/acceleration scale.
+
+    The scale is the sum of the absolute increments, Σ|a_m h_m + j_m h_m²/2| and Σ|j_m h_m|,
+    which bounds the rounding of the recurrence by a few eps per term.
+    """
+    _, vk, ak = (np.asarray(x) for x in traj.knot_states())
+    h = np.diff(np.asarray(traj.t_knots))
+    jm = np.asarray(traj.jerk)
+    a_scale = np.sum(np.abs(jm * h))
+    v_scale = np.sum(np.abs(h * (ak[:-1] + h * jm / 2)))
+    return bool(abs(vk[-1]) <= 1e-9 * v_scale and abs(ak[-1]) <= 1e-9 * a_scale)
+
+
+def concatenate(*trajectories: Trajectory) -> Trajectory:
+    r"""Play ``trajectories`` one after another, each starting where the previous one ends.
+
+    Knot times are shifted by the durations before them and the jerks are joined; the motion
+    is re-integrated, so each later piece moves *relative* to where the previous one stops (its
+    own ``r0`` is ignored) and the result starts at the first piece's ``r0``. Every piece but the
+    last must end at rest (v = a = 0), otherwise it would not play as it does on its own; this
+    is checked when the knots are concrete.
+    """
+    if not trajectories:
+        raise ValueError("`concatenate(*trajectories)` needs at least one Trajectory, got none")
+    for n, traj in enumerate(trajectories):
+        if not isinstance(traj, Trajectory):
+            raise ValueError(
+                f"`concatenate(*trajectories)` takes Trajectory objects, got "
+                f"{type(traj).__name__} at position {n}"
+            )
+    for n, traj in enumerate(trajectories[:-1]):
+        concrete = is_concrete(traj.t_knots) and is_concrete(traj.jerk)
+        if concrete and not _at_rest(traj):
+            _, vk, ak = traj.knot_states()
+            raise ValueError(
+                f"`concatenate(*trajectories)`: trajectory {n} must end at rest to be followed "
+                f"by another, got final velocity {float(vk[-1]):.6g} m/s and acceleration "
+                f"{float(ak[-1]):.6g} m/s²"
+            )
+    knots = [trajectories[0].t_knots]
+    end = trajectories[0].duration
+    for traj in trajectories[1:]:
+        knots.append(traj.t_knots[1:] + end)
+        end = end + traj.duration
+    return Trajectory(
+        t_knots=jnp.concatenate(knots),
+        jerk=jnp.concatenate([traj.jerk for traj in trajectories]),
+        r0=trajectories[0].r0,
+    )
+
+
+def reciprocating(
+    stroke: float = 5e-3,
+    v_max: float = 0.1,
+    a_max: float = 2.0,
+    j_max: float = 200.0,
+    *,
+    cycles: int = 1,
+    dwell: float = 0.0,
+    start: float = 0.0,
+) -> Trajectory:
+    r"""Short-stroke reciprocating reference (paper Figs. 16–17): ``cycles`` × (out, dwell, back,
+    dwell).
+
+    Each cycle is ``jerk_limited(stroke, ...)`` followed by ``jerk_limited(-stroke, ...)``, each
+    with ``dwell`` s of rest after it, so the axis is back at ``start`` at the end of every cycle,
+    t = n (2T + 2·dwell), with T the duration of one stroke (see ``jerk_limited``).
+
+    The defaults are a short stroke of a machine-tool feed axis: 5 mm at 0.1 m/s, 2 m/s² and
+    200 m/s³. With them v_max is not reached (the stroke is shorter than v T_a = 6 mm): T_j =
+    10 ms, peak 0.0905 m/s, T = a/j + √(a²/j² + 4h/a) ≈ 0.1105 s, so one cycle takes ≈ 0.221 s
+    plus the dwells, about two cycles in a 0.5 s simulation window.
+
+    **Arguments:**
+
+    - ``stroke``: signed stroke length in m (negative goes backwards first).
+    - ``v_max``, ``a_max``, ``j_max``: positive limits in m/s, m/s², m/s³.
+    - ``cycles``: number of out-and-back cycles, an integer ≥ 1.
+    - ``dwell``: rest after each stroke in s.
+    - ``start``: initial (and final) position in m.
+    """
+    if isinstance(cycles, bool) or not isinstance(cycles, numbers.Integral) or cycles < 1:
+        raise ValueError(f"`reciprocating(cycles=...)` must be an integer ≥ 1, got {cycles!r}")
+    names = {"stroke": stroke, "v_max": v_max, "a_max": a_max, "j_max": j_max}
+    vals = {k: _scalar(x, f"reciprocating({k}=...)") for k, x in names.items()}
+    finite(vals["stroke"], "reciprocating(stroke=...)")
+    for k in ("v_max", "a_max", "j_max"):
+        positive(vals[k], f"reciprocating({k}=...)")
+    rest = _scalar(dwell, "reciprocating(dwell=...)")
+    nonnegative(rest, "reciprocating(dwell=...)")
+    r0 = _scalar(start, "reciprocating(start=...)")
+    finite(r0, "reciprocating(start=...)")
+
+    limits = (vals["v_max"], vals["a_max"], vals["j_max"])
+    out = jerk_limited(vals["stroke"], *limits, start=r0, dwell=rest)
+    back = jerk_limited(-vals["stroke"], *limits, start=r0 + vals["stroke"], dwell=rest)
+    return concatenate(*([out, back] * int(cycles)))

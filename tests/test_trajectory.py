@@ -1,0 +1,457 @@
+"""Reference motions: piecewise-constant-jerk Trajectory, jerk-limited moves, reciprocating strokes.
+
+Oracles: the closed forms of the double-S profile derived by hand below (durations, peaks),
+scipy's PPoly integrating the jerk exactly (independent of the knot-state recurrence), and the
+analytic derivatives of a cubic. Tolerances are rounding bounds: a state is a sum of at most
+k + 4 rounded terms, and a time τ = t − t_i carries an absolute error ε·T, so a quantity x with
+rate ẋ is off by at most (k + 4)·ε·(|x| + |ẋ|·T) ("err" below).
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.interpolate import PPoly
+
+from fdjax._trajectory import Trajectory, concatenate, jerk_limited, reciprocating
+
+EPS = np.finfo(np.float64).eps
+
+# (distance, v_max, a_max, j_max) for each regime of the double-S profile.
+FULL = (0.1, 0.1, 2.0, 200.0)  # v j = 20 ≥ a² = 4 and d ≥ v(v/a + a/j) = 6 mm: all limits reached
+A_NOT = (0.01, 0.01, 2.0, 200.0)  # v j = 2 < a² = 4: triangular acceleration, cruise at v
+V_NOT = (5e-3, 0.1, 2.0, 200.0)  # 2a³/j² = 0.4 mm ≤ d < 6 mm: a reached, v not (the defaults)
+NEITHER = (2e-4, 0.1, 2.0, 200.0)  # d < 2a³/j²: neither a nor v reached
+REGIMES = {"full": FULL, "a_not_reached": A_NOT, "v_not_reached": V_NOT, "neither": NEITHER}
+
+
+def expected(d, v, a, j):
+    """Hand-derived (T, v_peak, a_peak) of a rest-to-rest double-S move of length d > 0."""
+    if (d, v, a, j) == FULL:
+        return d / v + v / a + a / j, v, a
+    if (d, v, a, j) == A_NOT:
+        return d / v + 2 * np.sqrt(v / j), v, np.sqrt(v * j)
+    if (d, v, a, j) == V_NOT:
+        # v_p²/a + v_p a/j = d, T = 2(a/j + v_p/a)
+        vp = (-(a * a / j) + np.sqrt((a * a / j) ** 2 + 4 * d * a)) / 2
+        return a / j + np.sqrt((a / j) ** 2 + 4 * d / a), vp, a
+    tj = np.cbrt(d / (2 * j))  # d = 2 j T_j³
+    return 4 * tj, j * tj**2, j * tj
+
+
+def scales(traj, v, a, j):
+    """Rounding bounds (err_r, err_v, err_a) for a trajectory with limits v, a, j."""
+    c = (traj.num_segments + 4) * EPS
+    T = float(traj.duration)
+    R = float(np.max(np.abs(traj.knot_states()[0])))
+    return c * (R + v * T), c * (v + a * T), c * (a + j * T)
+
+
+N = 1001  # one grid size everywhere, so each trajectory structure compiles `evaluate` once
+
+
+def dense(traj):
+    """N times: a grid over [−0.05 T, 1.05 T] plus every knot."""
+    T = float(traj.duration)
+    tk = np.asarray(traj.t_knots)
+    return np.sort(np.concatenate([np.linspace(-0.05 * T, 1.05 * T, N - tk.size), tk]))
+
+
+@pytest.mark.parametrize("name", list(REGIMES))
+def test_regime_duration_and_peaks(name):
+    d, v, a, j = REGIMES[name]
+    traj = jerk_limited(d, v, a, j)
+    T, vp, ap = expected(d, v, a, j)
+    # The implementation and the closed form are different float expressions of the same number.
+    assert abs(float(traj.duration) - T) <= 1e-12 * T
+    _, vk, ak = (np.asarray(x) for x in traj.knot_states())
+    err_r, err_v, err_a = scales(traj, v, a, j)
+    assert abs(vk[3] - vp) <= err_v + 1e-12 * vp  # end of the acceleration phase
+    assert abs(ak[1] - ap) <= err_a + 1e-12 * ap  # end of the first jerk phase
+    assert np.all(np.asarray(traj.jerk)[[0, 6]] == j)
+    assert np.all(np.asarray(traj.jerk)[[2, 4]] == -j)
+
+
+@pytest.mark.parametrize("name", list(REGIMES))
+@pytest.mark.parametrize("sign", [1.0, -1.0])
+def test_limits_and_final_state(name, sign):
+    d, v, a, j = REGIMES[name]
+    start = 0.25
+    traj = jerk_limited(sign * d, v, a, j, start=start)
+    err_r, err_v, err_a = scales(traj, v, a, j)
+    r, vel, acc, jrk = (np.asarray(x) for x in traj.evaluate(dense(traj)))
+    assert np.max(np.abs(vel)) <= v + err_v
+    assert np.max(np.abs(acc)) <= a + err_a
+    assert np.max(np.abs(jrk)) <= j
+    # Monotone move: the position stays between start and the goal.
+    assert np.all(sign * (r - start) >= -err_r) and np.all(sign * (r - start) <= d + err_r)
+    rk, vk, ak = (np.asarray(x) for x in traj.knot_states())
+    assert abs(rk[-1] - (start + sign * d)) <= 1e-12 * d
+    assert abs(vk[-1]) <= err_v and abs(ak[-1]) <= err_a
+    # After the end the axis rests exactly.
+    after = [np.asarray(x) for x in traj.evaluate(traj.duration + np.array([1e-9, 1.0]))]
+    assert np.all(after[0] == rk[-1]) and all(np.all(x == 0) for x in after[1:])
+    before = [np.asarray(x) for x in traj.evaluate(np.array([-1.0, -1e-9]))]
+    assert np.all(before[0] == start) and all(np.all(x == 0) for x in before[1:])
+
+
+def test_limits_reached_in_long_move():
+    d, v, a, j = FULL
+    traj = jerk_limited(d, v, a, j)
+    err_r, err_v, err_a = scales(traj, v, a, j)
+    _, vel, acc, jrk = (np.asarray(x) for x in traj.evaluate(dense(traj)))
+    assert np.max(np.abs(vel)) >= v - err_v
+    assert np.max(np.abs(acc)) >= a - err_a
+    assert np.max(np.abs(jrk)) == j
+    # Cruise at v_max for d/v − v/a − a/j.
+    durations = np.diff(np.asarray(traj.t_knots))
+    assert abs(durations[3] - (d / v - v / a - a / j)) <= 1e-12 * (d / v)
+
+
+def test_mirror_dwell_and_null_move():
+    d, v, a, j = V_NOT
+    fwd = jerk_limited(d, v, a, j, start=0.1)
+    back = jerk_limited(-d, v, a, j, start=0.1)
+    t = dense(fwd)
+    # Negating the jerk negates every integral exactly (sign flips are exact in floating point).
+    np.testing.assert_array_equal(
+        np.asarray(back.evaluate(t)[0]) - 0.1, -(np.asarray(fwd.evaluate(t)[0]) - 0.1)
+    )
+    dwell = 0.03
+    held = jerk_limited(d, v, a, j, dwell=dwell)
+    T = expected(d, v, a, j)[0]
+    assert abs(float(held.duration) - (T + dwell)) <= 1e-12 * T
+    r, vel, acc, _ = (np.asarray(x) for x in held.evaluate(np.linspace(T + 1e-9, T + dwell, 9)))
+    err_r, err_v, err_a = scales(held, v, a, j)
+    assert np.all(np.abs(r - d) <= 1e-12 * d + err_r)
+    assert np.all(np.abs(vel) <= err_v) and np.all(np.abs(acc) <= err_a)
+    null = jerk_limited(0.0, v, a, j, start=0.2, dwell=0.1)
+    assert float(null.duration) == 0.1
+    r, vel, acc, jrk = (np.asarray(x) for x in null.evaluate(np.linspace(-0.1, 0.3, 9)))
+    assert np.all(r == 0.2) and not np.any(vel) and not np.any(acc) and not np.any(jrk)
+
+
+@pytest.mark.parametrize("name", list(REGIMES))
+def test_against_ppoly_oracle(name):
+    """scipy integrates the piecewise-constant jerk thrice with continuity imposed at the knots."""
+    d, v, a, j = REGIMES[name]
+    traj = jerk_limited(d, v, a, j, start=-0.05, dwell=0.01)
+    tk, jk = np.asarray(traj.t_knots), np.asarray(traj.jerk)
+    keep = np.diff(tk) > 0
+    x = np.concatenate([[0.0], tk[1:][keep]])
+    jerk_pp = PPoly(jk[keep][None, :], x)
+    acc_pp = jerk_pp.antiderivative(1)
+    vel_pp = jerk_pp.antiderivative(2)
+    pos_pp = jerk_pp.antiderivative(3)
+    t = np.linspace(0.0, float(traj.duration), N)
+    r, vel, acc, _ = (np.asarray(y) for y in traj.evaluate(t))
+    err_r, err_v, err_a = scales(traj, v, a, j)
+    np.testing.assert_allclose(r, -0.05 + pos_pp(t), rtol=0, atol=2 * err_r)
+    np.testing.assert_allclose(vel, vel_pp(t), rtol=0, atol=2 * err_v)
+    np.testing.assert_allclose(acc, acc_pp(t), rtol=0, atol=2 * err_a)
+
+
+@pytest.mark.parametrize("name", list(REGIMES))
+def test_continuity_at_knots(name):
+    """Evaluated one ulp either side of a knot, r, v, a differ by rate × 2 ulp + rounding."""
+    d, v, a, j = REGIMES[name]
+    traj = jerk_limited(d, v, a, j)
+    err_r, err_v, err_a = scales(traj, v, a, j)
+    tk = np.asarray(traj.t_knots)  # at 0 and T the move meets the rest states
+    left = [np.asarray(x) for x in traj.evaluate(np.nextafter(tk, -np.inf))]
+    right = [np.asarray(x) for x in traj.evaluate(np.nextafter(tk, np.inf))]
+    gap = 2 * np.spacing(tk)
+    assert np.all(np.abs(left[0] - right[0]) <= v * gap + 2 * err_r)
+    assert np.all(np.abs(left[1] - right[1]) <= a * gap + 2 * err_v)
+    assert np.all(np.abs(left[2] - right[2]) <= j * gap + 2 * err_a)
+
+
+@pytest.mark.parametrize("name", ["full", "v_not_reached", "neither"])
+def test_central_differences(name):
+    """r ∈ C², ⃛r = j piecewise constant, |j| ≤ J. By Taylor with integral remainder,
+    |(r(t+h) − r(t−h))/2h − v| ≤ J h²/6 and |(v(t+h) − v(t−h))/2h − a| ≤ J h/2 everywhere,
+    plus rounding 2·err/2h; inside one segment (a(t+h) − a(t−h))/2h = j exactly."""
+    d, v, a, j = REGIMES[name]
+    traj = jerk_limited(d, v, a, j)
+    err_r, err_v, err_a = scales(traj, v, a, j)
+    h = 1e-5
+    t = dense(traj)
+    rp, vp, ap, _ = (np.asarray(x) for x in traj.evaluate(t + h))
+    rm, vm, am, _ = (np.asarray(x) for x in traj.evaluate(t - h))
+    _, vel, acc, _ = (np.asarray(x) for x in traj.evaluate(t))
+    assert np.all(np.abs((rp - rm) / (2 * h) - vel) <= j * h**2 / 6 + err_r / h)
+    assert np.all(np.abs((vp - vm) / (2 * h) - acc) <= j * h / 2 + err_v / h)
+    tk = np.asarray(traj.t_knots)
+    long = np.append(np.diff(tk) > 4 * h, False)
+    mid = np.append((tk[:-1] + tk[1:]) / 2, tk[-1])  # N.B. k + 1 entries, like the knots
+    ap, am = (np.asarray(traj.evaluate(mid + s)[2]) for s in (h, -h))
+    jrk = np.asarray(traj.evaluate(mid)[3])
+    assert np.all(np.abs((ap - am) / (2 * h) - jrk)[long] <= err_a / h)
+
+
+def test_reciprocating():
+    stroke, v, a, j = 4e-3, 0.08, 1.5, 150.0
+    cycles, dwell, start = 3, 0.02, 0.3
+    traj = reciprocating(stroke, v, a, j, cycles=cycles, dwell=dwell, start=start)
+    # 2a³/j² = 0.3 mm ≤ 4 mm < v(v/a + a/j) = 5.07 mm: the v-not-reached regime.
+    T = a / j + np.sqrt((a / j) ** 2 + 4 * stroke / a)
+    period = 2 * T + 2 * dwell
+    assert traj.num_segments == 16 * cycles
+    assert abs(float(traj.duration) - cycles * period) <= 1e-12 * cycles * period
+    # Knot-time rounding perturbs each segment length by δh ≤ ε·T; over k segments that moves
+    # a by ≤ k·ε·T·j, v by ≤ k·ε·T·(a + j·T) and r by ≤ k·ε·T·(v + a·T + j·T²).
+    Tt = float(traj.duration)
+    c = traj.num_segments * EPS * Tt
+    tol, tol_v, tol_a = c * (v + a * Tt + j * Tt**2), c * (a + j * Tt), c * j
+    ends = np.asarray(traj.t_knots)[16 * np.arange(1, cycles + 1)]
+    outs = np.asarray(traj.t_knots)[16 * np.arange(cycles) + 8]
+    holds = np.linspace(T, T + dwell, 5)  # the axis rests at the far end for `dwell` s
+    special = np.concatenate([ends, outs, holds])
+    t = np.concatenate([special, dense(traj)[special.size :]])  # one evaluation of size N
+    r, vel, acc, _ = (np.asarray(x) for x in traj.evaluate(t))
+    n = cycles
+    assert np.all(np.abs(r[:n] - start) <= tol + 1e-12 * stroke)
+    assert np.all(np.abs(vel[:n]) <= tol_v) and np.all(np.abs(acc[:n]) <= tol_a)
+    assert np.all(np.abs(r[n : special.size] - (start + stroke)) <= tol + 1e-12 * stroke)
+    np.testing.assert_allclose(ends, period * np.arange(1, cycles + 1), rtol=1e-12)
+    assert np.max(np.abs(vel)) <= v and np.max(np.abs(acc)) <= a + tol_a
+
+
+def test_reciprocating_defaults():
+    """5 mm at 0.1 m/s, 2 m/s², 200 m/s³: T = a/j + √(a²/j² + 4h/a) = 0.01 + √0.0101 s."""
+    traj = reciprocating()
+    T = 0.01 + np.sqrt(0.0101)
+    assert abs(float(traj.duration) - 2 * T) <= 1e-12 * T
+    assert 0.2 < float(traj.duration) < 0.25
+    samples = np.asarray(traj.sample(np.linspace(0.0, 0.5, N)))
+    assert samples.shape == (N, 3)
+    assert np.max(samples[:, 0]) <= 5e-3 * (1 + 1e-12) and samples[-1, 0] == samples[-2, 0]
+
+
+def test_concatenate_and_rest_check():
+    d, v, a, j = V_NOT
+    one = jerk_limited(d, v, a, j, start=0.1)
+    two = jerk_limited(2 * d, v, a, j, start=1.0)  # its r0 is ignored: moves are relative
+    both = concatenate(one, two)
+    T1 = float(one.duration)
+    t = np.linspace(0.0, float(two.duration), N)
+    np.testing.assert_allclose(
+        np.asarray(both.evaluate(T1 + t)[0]),
+        np.asarray(two.evaluate(t)[0]) - 1.0 + 0.1 + d,
+        rtol=0,
+        atol=4 * (scales(both, v, a, j)[0] + scales(two, v, a, j)[0]),
+    )
+    single = concatenate(one)
+    np.testing.assert_array_equal(np.asarray(single.t_knots), np.asarray(one.t_knots))
+    assert float(both.duration) == pytest.approx(T1 + float(two.duration), rel=1e-15)
+    ramp = Trajectory(t_knots=[0.0, 1.0], jerk=[1.0])
+    with pytest.raises(ValueError, match=r"`concatenate\(\*trajectories\)`: trajectory 0 must end"):
+        concatenate(ramp, one)
+    with pytest.raises(ValueError, match=r"needs at least one Trajectory"):
+        concatenate()
+    with pytest.raises(ValueError, match=r"takes Trajectory objects, got str at position 1"):
+        concatenate(one, "two")
+
+
+def test_sample_shape_and_values():
+    traj = jerk_limited(*FULL)
+    t = np.linspace(0.0, 1.0, 9)
+    s = np.asarray(traj.sample(t))
+    assert s.shape == (9, 3) and s.dtype == np.float64
+    r, vel, acc, _ = traj.evaluate(t)
+    np.testing.assert_array_equal(s, np.stack([r, vel, acc], -1))
+    assert np.asarray(traj.sample(np.zeros((2, 4)))).shape == (2, 4, 3)
+    assert np.asarray(traj.evaluate(0.5)[0]).shape == ()
+    # Integer times are accepted (cast to float64) under strict promotion.
+    np.testing.assert_array_equal(
+        np.asarray(traj.evaluate(jnp.arange(2))[0]),
+        np.asarray(traj.evaluate(np.array([0.0, 1.0]))[0]),
+    )
+
+
+def test_jit_vmap_no_retrace():
+    traj = jerk_limited(*FULL)
+    t = jnp.linspace(-0.1, 1.2, 9)
+
+    @eqx.filter_jit
+    @eqx.debug.assert_max_traces(max_traces=1)
+    def run(tr, t):
+        return tr.evaluate(t)
+
+    eager = traj.evaluate(t)
+    err = scales(traj, *FULL[1:])
+    for got, want, e in zip(run(traj, t), eager, (*err, 0.0)):
+        np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=0, atol=2 * e)
+    other = jerk_limited(0.05, 0.1, 2.0, 200.0, start=0.1)  # same structure: no new trace
+    run(other, t)
+    mapped = jax.vmap(traj.evaluate)(t)
+    looped = [traj.evaluate(ti) for ti in t]
+    for n in range(4):
+        np.testing.assert_allclose(
+            np.asarray(mapped[n]),
+            np.array([np.asarray(x[n]) for x in looped]),
+            rtol=0,
+            atol=2 * (*err, 0.0)[n],
+        )
+    # vmap over trajectories of the same structure.
+    stacked = jax.tree_util.tree_map(lambda x, y: jnp.stack([x, y]), traj, other)
+    r = jax.vmap(lambda tr: tr.evaluate(0.5)[0])(stacked)
+    np.testing.assert_allclose(
+        np.asarray(r), [traj.evaluate(0.5)[0], other.evaluate(0.5)[0]], rtol=1e-14
+    )
+
+
+def test_grad_wrt_time_is_velocity():
+    traj = jerk_limited(*V_NOT)
+    err_r, err_v, err_a = scales(traj, *V_NOT[1:])
+    t = jnp.asarray(dense(traj))
+    dr = jax.vmap(jax.grad(lambda s: traj.evaluate(s)[0]))(t)
+    dv = jax.vmap(jax.grad(lambda s: traj.evaluate(s)[1]))(t)
+    _, vel, acc, _ = traj.evaluate(t)
+    np.testing.assert_allclose(np.asarray(dr), np.asarray(vel), rtol=0, atol=2 * err_v)
+    inside = (t > 0) & (t < traj.duration)
+    np.testing.assert_allclose(
+        np.asarray(dv)[inside], np.asarray(acc)[inside], rtol=0, atol=2 * err_a
+    )
+
+
+def test_grad_wrt_leaves():
+    """r is linear in (r0, jerk): ∂r/∂r0 = 1 and ∂r(t; c·jerk)/∂c = r(t) − r0. Time scaling
+    t_knots → s·t_knots, jerk → jerk/s³ gives r_s(t) = r(t/s), so ∂r_s(t)/∂s|₁ = −t·v(t)."""
+    d, v, a, j = V_NOT
+    traj = jerk_limited(d, v, a, j, start=0.2)
+    err_r, err_v, _ = scales(traj, v, a, j)
+    t = jnp.linspace(0.0, 0.105, 9)  # inside the move, so t/s stays in range for s near 1
+    r, vel, _, _ = traj.evaluate(t)
+
+    @eqx.filter_jit
+    def grads(traj):
+        g = eqx.filter_grad(lambda tr: jnp.sum(tr.evaluate(t)[0]))(traj)
+        dc = jax.jacfwd(lambda c: Trajectory(traj.t_knots, c * traj.jerk, traj.r0).evaluate(t)[0])(
+            1.0
+        )
+        ds = jax.jacfwd(
+            lambda s: Trajectory(s * traj.t_knots, traj.jerk / s**3, traj.r0).evaluate(t)[0]
+        )(1.0)
+        return g.r0, dc, ds
+
+    g_r0, dc, ds = grads(traj)
+    assert float(g_r0) == t.shape[0]
+    np.testing.assert_allclose(np.asarray(dc), np.asarray(r) - 0.2, rtol=0, atol=2 * err_r)
+    np.testing.assert_allclose(
+        np.asarray(ds),
+        -np.asarray(t) * np.asarray(vel),
+        rtol=0,
+        atol=8 * err_v * float(traj.duration),
+    )
+
+
+@pytest.mark.parametrize(
+    "call, match",
+    [
+        (
+            lambda: jerk_limited(np.nan, 0.1, 2.0, 200.0),
+            r"`jerk_limited\(distance=\.\.\.\)` must be finite \(no NaN or inf\), got nan",
+        ),
+        (
+            lambda: jerk_limited(0.1, -1, 2.0, 200.0),
+            r"`jerk_limited\(v_max=\.\.\.\)` must be finite and positive, got -1",
+        ),
+        (
+            lambda: jerk_limited(0.1, 0.1, 0.0, 200.0),
+            r"`jerk_limited\(a_max=\.\.\.\)` must be finite and positive, got 0",
+        ),
+        (
+            lambda: jerk_limited(0.1, 0.1, 2.0, np.inf),
+            r"`jerk_limited\(j_max=\.\.\.\)` must be finite and positive, got inf",
+        ),
+        (
+            lambda: jerk_limited(0.1, 0.1, 2.0, 200.0, dwell=-0.1),
+            r"`jerk_limited\(dwell=\.\.\.\)` must be finite and non-negative, got -0.1",
+        ),
+        (
+            lambda: jerk_limited(0.1, 0.1, 2.0, 200.0, start=np.inf),
+            r"`jerk_limited\(start=\.\.\.\)` must be finite",
+        ),
+        (
+            lambda: jerk_limited(1j, 0.1, 2.0, 200.0),
+            r"`jerk_limited\(distance=\.\.\.\)` must be real",
+        ),
+        (
+            lambda: jerk_limited([0.1, 0.2], 0.1, 2.0, 200.0),
+            r"`jerk_limited\(distance=\.\.\.\)` must be a scalar, got shape \(2,\)",
+        ),
+        (
+            lambda: jax.jit(lambda d: jerk_limited(d, 0.1, 2.0, 200.0).duration)(0.1),
+            r"`jerk_limited\(distance=\.\.\.\)` must be a concrete number",
+        ),
+        (
+            lambda: reciprocating(cycles=0),
+            r"`reciprocating\(cycles=\.\.\.\)` must be an integer ≥ 1",
+        ),
+        (lambda: reciprocating(cycles=1.5), r"`reciprocating\(cycles=\.\.\.\)` must be an integer"),
+        (
+            lambda: reciprocating(cycles=True),
+            r"`reciprocating\(cycles=\.\.\.\)` must be an integer",
+        ),
+        (lambda: reciprocating(stroke=np.inf), r"`reciprocating\(stroke=\.\.\.\)` must be finite"),
+        (
+            lambda: reciprocating(j_max=-5.0),
+            r"`reciprocating\(j_max=\.\.\.\)` must be finite and positive, got -5",
+        ),
+        (
+            lambda: reciprocating(dwell=-1.0),
+            r"`reciprocating\(dwell=\.\.\.\)` must be finite and non-negative, got -1",
+        ),
+        (
+            lambda: Trajectory(t_knots=[0.0, 1.0, 0.5], jerk=[1.0, 1.0]),
+            r"`Trajectory\(t_knots=\.\.\.\)` must be finite, non-decreasing and start at 0, "
+            r"got 0.5 at index 2",
+        ),
+        (
+            lambda: Trajectory(t_knots=[0.1, 1.0], jerk=[1.0]),
+            r"`Trajectory\(t_knots=\.\.\.\)` must be .*start at 0, got 0.1 at index 0",
+        ),
+        (
+            lambda: Trajectory(t_knots=[0.0, 1.0], jerk=[1.0, 2.0]),
+            r"`Trajectory\(jerk=\.\.\.\)` must have one entry per segment "
+            r"\(len\(t_knots\) - 1 = 1\)",
+        ),
+        (
+            lambda: Trajectory(t_knots=[0.0], jerk=[]),
+            r"`Trajectory\(t_knots=\.\.\.\)` must hold at least two knots",
+        ),
+        (
+            lambda: Trajectory(t_knots=[[0.0, 1.0]], jerk=[1.0]),
+            r"`Trajectory\(t_knots=\.\.\.\)` must be a 1-D array, got shape \(1, 2\)",
+        ),
+        (
+            lambda: Trajectory(t_knots=[0.0, 1.0], jerk=[np.nan]),
+            r"`Trajectory\(jerk=\.\.\.\)` must be finite",
+        ),
+        (
+            lambda: Trajectory(t_knots=[0.0, 1.0], jerk=[1.0], r0=[0.0]),
+            r"`Trajectory\(r0=\.\.\.\)` must be a scalar, got shape \(1,\)",
+        ),
+        (
+            lambda: jerk_limited(*FULL).evaluate(1j),
+            r"`Trajectory.evaluate\(t=\.\.\.\)` must be real",
+        ),
+    ],
+)
+def test_errors(call, match):
+    with pytest.raises(ValueError, match=match):
+        call()
+
+
+def test_errors_under_jit():
+    """Knots traced inside jit are checked when the program runs (eqx.error_if)."""
+
+    @eqx.filter_jit
+    def position(t_knots):
+        return Trajectory(t_knots, jnp.ones(2, jnp.float64)).evaluate(0.5)[0]
+
+    assert float(position(jnp.array([0.0, 1.0, 2.0]))) == pytest.approx(0.5**3 / 6, rel=1e-14)
+    with pytest.raises(Exception, match=r"Trajectory\(t_knots=\.\.\.\)` must be finite, non-decr"):
+        jax.block_until_ready(position(jnp.array([0.0, 1.0, 0.5])))
