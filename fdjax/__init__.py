@@ -69,6 +69,17 @@ from ._modal import (
     track_modes as track_modes,
 )
 from ._rods import Rod as Rod, Support as Support, rod_receptance as rod_receptance
+from ._simulate import (
+    SIMULATION_OUTPUTS as SIMULATION_OUTPUTS,
+    ExponentialFOH as ExponentialFOH,
+    PadeODE as PadeODE,
+    SampledData as SampledData,
+    SampledLoop as SampledLoop,
+    Simulation as Simulation,
+    SimulationResult as SimulationResult,
+    sampled_closed_loop as sampled_closed_loop,
+    simulate as simulate,
+)
 from ._statespace import (
     DEFAULT_BAND_HZ as DEFAULT_BAND_HZ,
     DEFAULT_ELEMENTS as DEFAULT_ELEMENTS,
@@ -85,4 +96,10 @@ from ._substructures import (
     NutJoint as NutJoint,
     Rotary as Rotary,
     Screw as Screw,
+)
+from ._trajectory import (
+    Trajectory as Trajectory,
+    concatenate as concatenate,
+    jerk_limited as jerk_limited,
+    reciprocating as reciprocating,
 )

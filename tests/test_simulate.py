@@ -1,0 +1,365 @@
+"""Closed-loop time simulation: sampled-data scan and diffrax ODE against independent oracles.
+
+Oracles: a per-sample NumPy/SciPy implementation of the sampled loop (``cont2discrete`` ZOH,
+``sosfilt`` sections, a shift register), ``control.forced_response`` on the discrete loop,
+``scipy.signal.lsim`` on the continuous Padé loop, central differences for gradients.
+"""
+
+import control
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.signal as sig
+
+import fdjax
+from fdjax._trajectory import jerk_limited, reciprocating
+
+POS = 0.115
+DT = 5.0e-5  # 20 kHz: τ = 250 µs is 5 samples
+
+
+@pytest.fixture(scope="module")
+def drive():
+    return fdjax.reference_drive()
+
+
+@pytest.fixture(scope="module")
+def plant(drive):
+    return fdjax.state_space(drive, POS)
+
+
+@pytest.fixture(scope="module")
+def mcm():
+    return fdjax.MCM(
+        fdjax.PeakFilter(0.3, 2 * np.pi * 120.0, 0.15, 0.4),
+        fdjax.NotchFilter(2 * np.pi * 1000.0, 0.05, 0.5),
+    )
+
+
+@pytest.fixture(scope="module")
+def reference():
+    return reciprocating(stroke=2e-3, v_max=0.05, a_max=2.0, j_max=400.0, cycles=1)
+
+
+def _inputs(ref, n, dt, force=None):
+    t = np.arange(n) * dt
+    r, v, a = (np.asarray(x) for x in ref.evaluate(jnp.asarray(t))[:3])
+    f = np.zeros(n) if force is None else np.asarray(force)
+    return t, np.stack([r, v, a, f], 1)
+
+
+def _numpy_sampled(loop, plant, W, dt, d):
+    """The sampled-data loop written out sample by sample, from SciPy's pieces."""
+    A, B, C, D = (np.asarray(x) for x in (plant.A, plant.B, plant.C, plant.D))
+    Phi, Gam, *_ = sig.cont2discrete((A, B, C, D), dt, method="zoh")
+    x = np.zeros(A.shape[0])
+    buf = [0.0] * d  # u_{k-1} … u_{k-d}
+    km = float(loop.k_motor)
+    out = []
+    if isinstance(loop, fdjax.DoubleLoop):
+        df = loop.mcm.discretize(dt)
+        par, ser = np.array(df.parallel_sos), np.array(df.series_sos)
+        zp = [np.zeros(2) for _ in par]
+        zs = [np.zeros(2) for _ in ser]
+        z = 0.0
+        th_prev = 0.0
+        kp, kv, ki = float(loop.kp), float(loop.kv), float(loop.ki)
+        for w in W:
+            T1 = km * buf[-1]
+            y = C @ x + D @ np.array([T1, w[3]])
+            v_m = float(loop.i_sc) * (y[0] - th_prev) / dt
+            e = kp * (w[0] - y[1]) + float(loop.k_ffv) * w[1] - v_m
+            u_pi = kv * (e + ki * (z + 0.5 * dt * e))  # Tustin integrator
+            z += dt * e
+            u_f = u_pi
+            for i, row in enumerate(par):
+                yi, zp[i] = sig.sosfilt(row[None, :], [u_pi], zi=zp[i][None, :])
+                zp[i] = zp[i][0]
+                u_f = u_f + yi[0]
+            for i, row in enumerate(ser):
+                yi, zs[i] = sig.sosfilt(row[None, :], [u_f], zi=zs[i][None, :])
+                zs[i] = zs[i][0]
+                u_f = yi[0]
+            u = u_f + float(loop.k_ffa) * w[2]
+            out.append([y[0], y[1], y[2], T1])
+            th_prev = y[0]
+            x = Phi @ x + Gam @ np.array([T1, w[3]])
+            buf = [u] + buf[:-1]
+    else:
+        pid = sig.cont2discrete(
+            (
+                np.diag([0.0, -float(loop.wd)]),
+                np.ones((2, 1)),
+                np.array([[float(loop.ki), -float(loop.kd) * float(loop.wd) ** 2]]),
+                np.array([[float(loop.kp) + float(loop.kd) * float(loop.wd)]]),
+            ),
+            dt,
+            method="bilinear",
+        )
+        Ac, Bc, Cc, Dc = (np.asarray(m) for m in pid[:4])
+        xc = np.zeros(2)
+        for w in W:
+            T1 = km * buf[-1]
+            y = C @ x + D @ np.array([T1, w[3]])
+            e = w[0] - y[1]
+            u = (Cc @ xc + Dc[:, 0] * e)[0] + float(loop.k_ffv) * w[1] + float(loop.k_ffa) * w[2]
+            xc = Ac @ xc + Bc[:, 0] * e
+            out.append([y[0], y[1], y[2], T1])
+            x = Phi @ x + Gam @ np.array([T1, w[3]])
+            buf = [u] + buf[:-1]
+    return np.array(out)
+
+
+def _rel(a, b):
+    return np.max(np.abs(np.asarray(a) - np.asarray(b))) / np.max(np.abs(np.asarray(b)))
+
+
+@pytest.mark.parametrize("kind", ["double", "pid"])
+def test_sampled_matches_per_sample_numpy(plant, mcm, reference, kind):
+    loop = fdjax.DoubleLoop(mcm=mcm) if kind == "double" else fdjax.PIDLoop(k_ffv=10.0)
+    n = 1200
+    force = np.where(np.arange(n) > 600, 50.0, 0.0)
+    sim = fdjax.simulate(loop, plant, reference, fdjax.SampledData(DT), duration=(n - 1) * DT,
+                         disturbance=force)
+    _, W = _inputs(reference, n, DT, force)
+    ref = _numpy_sampled(loop, plant, W, DT, 5)
+    got = np.stack([sim.theta1, sim.x2, sim.x3, sim.torque], 1)
+    for i in range(4):  # every channel to round-off of the recursion (10k products)
+        assert _rel(got[:, i], ref[:, i]) < 1e-9, i
+    np.testing.assert_allclose(sim.error_scale, W[:, 0] - ref[:, 1], atol=1e-12)
+    assert _rel(sim.current, ref[:, 3] / float(loop.k_motor)) < 1e-9
+
+
+def test_sampled_matches_python_control(plant, mcm, reference):
+    loop = fdjax.DoubleLoop(mcm=mcm)
+    sl = fdjax.sampled_closed_loop(loop, plant, fdjax.SampledData(DT))
+    n = 2000
+    t, W = _inputs(reference, n, DT)
+    sys = control.ss(*(np.asarray(m) for m in (sl.A, sl.B, sl.C, sl.D)), DT)
+    resp = control.forced_response(sys, T=t, U=W.T)
+    sim = fdjax.simulate(loop, plant, reference, fdjax.SampledData(DT), duration=(n - 1) * DT)
+    got = np.stack([sim.theta1, sim.x2, sim.x3, sim.torque], 0)
+    for i in range(4):
+        assert _rel(got[i], resp.outputs[i]) < 1e-9, i
+
+
+@pytest.mark.parametrize("kind", ["double", "pid"])
+def test_ode_matches_lsim(plant, mcm, reference, kind):
+    """The diffrax path (ExponentialFOH) solves the Padé loop as lsim does (first-order hold)."""
+    loop = fdjax.DoubleLoop(mcm=mcm) if kind == "double" else fdjax.PIDLoop()
+    n = 3000
+    t, W = _inputs(reference, n, DT)
+    cl = fdjax.closed_loop(loop, plant)
+    _, yout, _ = sig.lsim(
+        sig.StateSpace(*(np.asarray(m) for m in (cl.A, cl.B, cl.C, cl.D))), W, t
+    )
+    sim = fdjax.simulate(loop, plant, reference, fdjax.PadeODE(dt=DT), duration=(n - 1) * DT)
+    got = np.stack([sim.theta1, sim.x2, sim.x3, sim.torque], 1)
+    for i in range(4):
+        assert _rel(got[:, i], yout[:, i]) < 1e-6, i
+    # The tracking error itself (µm on mm) to 1e-6 of its own size.
+    assert _rel(sim.error_scale, W[:, 0] - yout[:, 1]) < 1e-6
+
+
+def test_ode_general_solver_matches_lsim(plant, reference):
+    """A stock diffrax solver (Kvaerno5, adaptive) on the same ODE agrees too."""
+    loop = fdjax.DoubleLoop()
+    n = 401
+    t, W = _inputs(reference, n, DT)
+    cl = fdjax.closed_loop(loop, plant)
+    _, yout, _ = sig.lsim(
+        sig.StateSpace(*(np.asarray(m) for m in (cl.A, cl.B, cl.C, cl.D))), W, t
+    )
+    method = fdjax.PadeODE(
+        dt=DT, solver=diffrax.Kvaerno5(),
+        stepsize_controller=diffrax.ClipStepSizeController(
+            diffrax.PIDController(rtol=1e-10, atol=1e-14), step_ts=jnp.asarray(t)
+        ),
+    )
+    sim = fdjax.simulate(loop, plant, reference, method, duration=(n - 1) * DT)
+    assert _rel(sim.x2, yout[:, 1]) < 1e-6
+    assert _rel(sim.torque, yout[:, 3]) < 1e-6
+
+
+def test_sampled_and_pade_agree_at_first_order(plant, reference):
+    """Same loop, two delay models: the sampled loop's extra half-sample lags (ZOH, backward
+    difference) vanish as T → 0 with τ fixed; the difference is O(T)."""
+    loop = fdjax.DoubleLoop()
+    dur = 0.06
+    errs = []
+    for T in (1.25e-4, 6.25e-5, 3.125e-5):
+        k = round(1.25e-4 / T)
+        a = fdjax.simulate(loop, plant, reference, fdjax.SampledData(T), duration=dur)
+        b = fdjax.simulate(loop, plant, reference, fdjax.PadeODE(dt=T), duration=dur)
+        errs.append(float(jnp.max(jnp.abs(a.error_scale[::k] - b.error_scale[::k]))))
+    orders = np.log2(np.array(errs[:-1]) / np.array(errs[1:]))
+    np.testing.assert_allclose(orders, 1.0, atol=0.05)
+    # and the difference is small against the error itself at 8 kHz-class rates
+    assert errs[-1] < 0.1 * float(jnp.max(jnp.abs(b.error_scale)))
+
+
+def _hot_pid(drive, factor):
+    """The default PID with every gain scaled to ``factor`` times its gain margin at 0.7 m:
+    unstable there by construction (checked by the closed-loop poles)."""
+    base = fdjax.PIDLoop()
+    f = np.geomspace(1.0, 3000.0, 4000)
+    gm = float(fdjax.loop_margins(base, fdjax.state_space(drive, 0.7), f).outer.gain_margin)
+    g = factor * gm
+    hot = fdjax.PIDLoop(base.kp * g, base.ki * g, base.kd * g, base.wd)
+    assert not bool(fdjax.check_stability(hot, drive, position_m=0.7).stable)
+    return hot
+
+
+def test_unstable_loop_is_reported_with_position(drive, reference):
+    hot = _hot_pid(drive, 1.5)
+    for method in (fdjax.SampledData(DT), fdjax.PadeODE(dt=DT)):
+        with pytest.raises(RuntimeError, match=r"unstable at table position 0\.7 m: pole at"):
+            fdjax.simulate(hot, drive, reference, method, position_m=0.7, duration=0.05)
+        sim = fdjax.simulate(hot, drive, reference, method, position_m=0.7, duration=0.05,
+                             throw=False)
+        assert sim.result == fdjax.SimulationResult.unstable
+        assert float(jnp.real(sim.least_stable_pole)) > 0
+        # Gelfand's formula on the transition matrix gives the same growth rate as the eig, to
+        # the accuracy of exp(A h) for the badly scaled Padé loop (ε‖Ah‖₁/h ≈ 1e-4 1/s)
+        np.testing.assert_allclose(sim.growth_rate, jnp.real(sim.least_stable_pole), atol=1e-3)
+    # the same poles as check_stability (sampled: s = ln z / T is close, not equal)
+    st = fdjax.check_stability(hot, drive, position_m=0.7)
+    ode = fdjax.simulate(hot, drive, reference, fdjax.PadeODE(dt=DT), position_m=0.7,
+                         duration=0.05, throw=False)
+    np.testing.assert_allclose(ode.least_stable_pole, st.poles[0], rtol=1e-8)
+    # the default loop is stable there and runs to the end
+    fine = fdjax.simulate(fdjax.PIDLoop(), drive, reference, fdjax.SampledData(DT),
+                          position_m=0.7, duration=0.05)
+    assert fine.result == fdjax.SimulationResult.successful
+    assert float(jnp.real(fine.least_stable_pole)) < 0
+
+
+def test_instability_and_divergence_under_jit(drive, reference):
+    """Under jit and vmap the pole check still works (growth rate of the transition matrix),
+    and a run that leaves the error bound stops there with finite outputs."""
+    hot = _hot_pid(drive, 1.5)
+    n_modes = fdjax.count_modes(drive)
+    pos = jnp.array([0.1, 0.7])
+    soft = fdjax.PIDLoop()
+    for method in (fdjax.SampledData(DT), fdjax.PadeODE(dt=DT)):
+        sims = jax.jit(jax.vmap(lambda p, m=method: fdjax.simulate(
+            hot, drive, reference, m, position_m=p, duration=0.05, n_modes=n_modes,
+            throw=False)))(pos)
+        np.testing.assert_array_equal(sims.result == fdjax.SimulationResult.unstable,
+                                      [False, True])
+        np.testing.assert_array_equal(sims.result == fdjax.SimulationResult.successful,
+                                      [True, False])
+        assert "unstable at table position 0.7 m: growing at" in sims.message
+        assert float(sims.growth_rate[0]) < 0 < float(sims.growth_rate[1])
+        # a stable loop whose error leaves a (deliberately tiny) bound stops there
+        sim = jax.jit(lambda d, m=method: fdjax.simulate(
+            soft, d, reference, m, position_m=0.4, duration=0.05,
+            n_modes=n_modes, error_bound=1e-7, throw=False))(drive)
+        assert sim.result == fdjax.SimulationResult.diverged
+        k = int(sim.failed_at)
+        assert 0 < k < sim.t.shape[0]
+        assert abs(float(sim.error_scale[k - 1])) <= 1e-7 < abs(float(sim.error_scale[k]))
+        np.testing.assert_array_equal(sim.x2[k:], sim.x2[k - 1])  # frozen, finite
+        assert "diverged" in sim.message and "table position 0.4 m" in sim.message
+    with pytest.raises(Exception, match="diverged or failed"):
+        jax.jit(lambda d: fdjax.simulate(hot, d, reference, fdjax.SampledData(DT),
+                                         position_m=0.7, duration=0.05, n_modes=n_modes))(drive)
+
+
+def test_gradients_match_central_differences(drive, mcm, reference):
+    """d RMS(e2)/d(controller and plant parameters), sampled and ODE paths."""
+    n_modes = fdjax.count_modes(drive)
+
+    def rms(p, method):
+        loop = fdjax.DoubleLoop(
+            kp=p["kp"], kv=p["kv"], ki=p["ki"], k_ffa=p["k_ffa"],
+            mcm=fdjax.MCM(fdjax.PeakFilter(p["K"], 2 * np.pi * 120.0, 0.15, p["phi"]),
+                          mcm.notch),
+        )
+        d = eqx.tree_at(lambda x: x.nut.stiffness, drive, p["k_nut"])
+        sim = fdjax.simulate(loop, d, reference, method, position_m=POS, duration=0.05,
+                             n_modes=n_modes, throw=False)
+        return sim.rms_error()
+
+    p0 = dict(kp=jnp.asarray(40.0), kv=jnp.asarray(1e3), ki=jnp.asarray(60.0),
+              k_ffa=jnp.asarray(0.3), K=jnp.asarray(0.3), phi=jnp.asarray(0.4),
+              k_nut=jnp.asarray(drive.nut.stiffness))
+    for method in (fdjax.SampledData(DT, delay_samples=5), fdjax.PadeODE(dt=DT)):
+        g = jax.jit(jax.grad(lambda p, m=method: rms(p, m)))(p0)
+        f = jax.jit(lambda p, m=method: rms(p, m))
+        for k, v in p0.items():
+            # central difference: truncation O(h²) ≈ 1e-7 relative; round-off of the loss
+            # (exp of the badly scaled Padé loop, ~1e-9 relative) / h stays below 1e-6
+            h = 3e-4 * abs(float(v))
+            fp = float(f({**p0, k: v + h}))
+            fm = float(f({**p0, k: v - h}))
+            fd = (fp - fm) / (2 * h)
+            assert abs(float(g[k]) - fd) <= 1e-5 * abs(fd) + 1e-9 * float(f(p0)) / abs(float(v)), (
+                type(method).__name__, k, float(g[k]), fd)
+
+
+def test_vmap_over_positions_equals_loop(drive, reference):
+    loop = fdjax.DoubleLoop()
+    n_modes = fdjax.count_modes(drive)
+    pos = jnp.array([0.115, 0.4, 0.7])
+
+    def run(p):
+        return fdjax.simulate(loop, drive, reference, fdjax.SampledData(DT), position_m=p,
+                              duration=0.03, n_modes=n_modes, throw=False)
+
+    batched = jax.vmap(run)(pos)
+    for i, p in enumerate(pos):
+        one = run(p)
+        np.testing.assert_allclose(batched.x2[i], one.x2, rtol=1e-12, atol=1e-18)
+    assert batched.x2.shape == (3, 601)
+
+
+def test_moving_table(drive):
+    """Moving table: with the table at rest it is the frozen loop on the same modal basis;
+    moving, the exponential midpoint rule agrees with a stiff adaptive solver."""
+    loop = fdjax.DoubleLoop()
+    n = 401
+    force = jnp.where(jnp.arange(n) > 40, 100.0, 0.0)
+    still = jerk_limited(1e-9, 0.1, 2.0, 200.0)
+    moving = fdjax.simulate(loop, drive, still, fdjax.PadeODE(dt=DT), position_m=0.4,
+                            duration=(n - 1) * DT, disturbance=force, moving=True, n_modes=8)
+    frozen = fdjax.simulate(loop, drive, still, fdjax.PadeODE(dt=DT), position_m=0.4,
+                            duration=(n - 1) * DT, disturbance=force, n_modes=8,
+                            )
+    # frozen uses the twin with its static residual D; the moving basis has none: close, not equal
+    assert _rel(moving.x3, frozen.x3) < 2e-2
+
+    fast = jerk_limited(0.02, 1.0, 20.0, 2000.0)  # 20 mm in ~60 ms: Y sweeps 0.3 → 0.32 m
+    dur = 0.02
+    a = fdjax.simulate(loop, drive, fast, fdjax.PadeODE(dt=DT), position_m=0.3, duration=dur,
+                       moving=True, n_modes=8)
+    t = jnp.arange(round(dur / DT) + 1, dtype=jnp.float64) * DT
+    b = fdjax.simulate(
+        loop, drive, fast,
+        fdjax.PadeODE(dt=DT, solver=diffrax.Kvaerno5(),
+                      stepsize_controller=diffrax.ClipStepSizeController(
+                          diffrax.PIDController(rtol=1e-9, atol=1e-13), step_ts=t)),
+        position_m=0.3, duration=dur, moving=True, n_modes=8,
+    )
+    assert float(a.position_m[-1]) > 0.3 + 1e-3  # it did move
+    assert _rel(a.error_scale, b.error_scale) < 1e-5
+
+
+def test_bad_input_messages(plant, reference):
+    loop = fdjax.DoubleLoop(tau=2.6e-4)
+    with pytest.raises(ValueError, match=r"DoubleLoop\(tau=...\)` must be a whole number"):
+        fdjax.simulate(loop, plant, reference, fdjax.SampledData(DT))
+    with pytest.raises(ValueError, match=r"SampledData\(period=...\)` must be positive"):
+        fdjax.SampledData(-1.0)
+    with pytest.raises(ValueError, match=r"PadeODE\(pade_order=...\)"):
+        fdjax.PadeODE(pade_order=0)
+    with pytest.raises(ValueError, match=r"simulate\(disturbance=...\)` must have shape"):
+        fdjax.simulate(fdjax.DoubleLoop(), plant, reference, duration=0.01,
+                       disturbance=np.zeros(3))
+    with pytest.raises(ValueError, match=r"simulate\(moving=True\)"):
+        fdjax.simulate(fdjax.DoubleLoop(), plant, reference, moving=True)
+    with pytest.raises(TypeError, match=r"simulate\(reference=...\)"):
+        fdjax.simulate(fdjax.DoubleLoop(), plant, object())
