@@ -130,8 +130,9 @@ class ExponentialFOH(diffrax.AbstractSolver):
         exp([[A h, B h, 0], [0, 0, I], [0, 0, 0]]) = [[Φ, Γ₀, Γ₁], [0, I, I], [0, 0, I]].
 
     For a frozen plant (A, B constant) this is exact, whatever the stiffness of the Padé delay
-    and the high modes; the exponential is computed once, at ``init``, for the step ``dt`` (use
-    ``diffrax.ConstantStepSize`` and ``dt0 = dt``; a step of another length gets its own).  For
+    and the high modes; the exponential is computed once, at ``init``, for the step ``dt``, and
+    every step must be dt (``diffrax.StepTo`` on the output grid, as :func:`simulate` does;
+    another step length is an error).  For
     the moving table A(Y(t)), B(Y(t)) are taken at the step's midpoint (the exponential
     midpoint rule, second order in the variation of the plant over a step — the table moves
     micrometres per step) and the exponential is computed every step.  No error estimate, so
@@ -157,9 +158,13 @@ class ExponentialFOH(diffrax.AbstractSolver):
         terms = _unwrap(terms)
         h = t1 - t0
         if isinstance(terms, _LTITerm):
-            same = jnp.abs(h - self.dt) <= 1e-9 * self.dt
-            Phi, G0, G1 = jax.lax.cond(
-                same, lambda: solver_state, lambda: _foh_matrices(terms.A, terms.B, h)
+            # Steps of exactly dt (a branch computing exp(A h) for another h would cost the
+            # reverse pass both branches' residuals at every step: 3× the gradient's time).
+            Phi, G0, G1 = solver_state
+            y0 = eqx.error_if(
+                y0, jnp.abs(h - self.dt) > 1e-9 * self.dt,
+                "ExponentialFOH(dt) takes steps of exactly dt on a frozen plant: use "
+                "diffrax.StepTo on a grid of spacing dt (the default of fdjax.simulate)",
             )
         else:
             A, B = terms.system(0.5 * (t0 + t1))[:2]
@@ -183,7 +188,7 @@ class PadeODE(eqx.Module):
             exponential midpoint for the moving table).  General solvers (``diffrax.Tsit5()``,
             ``diffrax.Kvaerno5()``) work too, but the loop is stiff (the Padé delay's poles
             reach ~7e4 1/s), so they need many small steps.
-        stepsize_controller: default ``ConstantStepSize()`` for ExponentialFOH, else
+        stepsize_controller: default ``StepTo(ts=output grid)`` for ExponentialFOH, else
             ``PIDController(rtol=1e-8, atol=1e-12)`` clipped to end steps on the output grid
             (where the first-order-hold input has its kinks).
         adjoint: diffrax adjoint; default ``RecursiveCheckpointAdjoint()``: reverse-mode through
@@ -705,6 +710,15 @@ def simulate(
         if position_m is None:
             raise ValueError(f"`{fn}(position_m=...)` is required when the plant is a drive")
         plant._check_positions(position_m)
+        ratio = plant.screw.ratio
+        if (isinstance(loop, DoubleLoop) and _checks.is_concrete(loop.i_sc)
+                and _checks.is_concrete(ratio)
+                and abs(float(loop.i_sc) / float(ratio) - 1.0) > 1e-9):
+            raise ValueError(
+                f"`DoubleLoop(i_sc=...)` must be the drive's screw ratio lead/2π = "
+                f"{float(ratio):.6g} m/rad (it scales the encoder speed), "
+                f"got {float(loop.i_sc):.6g}"
+            )
         if n_modes is None:
             n_modes = count_modes(plant, n_elements=n_elements)
     elif isinstance(plant, StateSpace):
@@ -758,8 +772,9 @@ def _simulate_jit(loop, plant, reference, method, position_m, force, n, d, movin
         pos0 = plant.position_m
     if isinstance(method, SampledData):
         sl = _sampled_impl(loop, plant, method.period, d)
-        S = _scan(_check_delay(loop, method.period, d, sl.A), sl.B, W)
-        failed_at, Y = _first_bad(S, S @ sl.C.T + W @ sl.D.T, W, error_bound)
+        Y, finite = _lifted_outputs(_check_delay(loop, method.period, d, sl.A), sl.B, sl.C,
+                                    sl.D, W)
+        failed_at, Y = _first_bad(finite, Y, W, error_bound)
         result = SimulationResult.where(failed_at < n, SimulationResult.diverged,
                                         SimulationResult.successful)
         growth = _growth_rate(sl.A, sl.dt)
@@ -794,23 +809,55 @@ def _growth_rate(Phi, h, squarings: int = 48):
     return log_s / (2.0**squarings * h)
 
 
-def _scan(A, B, W):
-    """States s_k of s_{k+1} = A s_k + B w_k from s_0 = 0, (n, ns): one matrix–vector product
-    per step (the input term for all steps is one matrix product outside the loop)."""
-
-    def body(s, bw):
-        return A @ s + bw, s
-
-    return jax.lax.scan(body, jnp.zeros(A.shape[0]), W @ B.T)[1]
+_CHUNK = 16  # samples per block of the lifted recursion
 
 
-def _first_bad(X, Y, W, bound):
-    """Index of the first output sample whose state is non-finite or whose scale error is beyond
-    ``bound`` (n when none); the outputs from there on are frozen at the last good sample, so a
-    diverging run never hands NaN or overflow to the user."""
+def _lifted_outputs(A, B, C, D, W, K: int = _CHUNK):
+    r"""Outputs y_k = C s_k + D w_k of s_{k+1} = A s_k + B w_k, s_0 = 0, by the lifted
+    (block) recursion: with s_c the state at the start of block c of K samples,
+
+        s_{c+1} = A^K s_c + Σ_{i<K} A^{K−1−i} B w_{cK+i},
+        y_{cK+j} = C A^j s_c + Σ_{i<j} C A^{j−1−i} B w_{cK+i} + D w_{cK+j}.
+
+    Only the block states are sequential (n/K steps); the input terms of every block and the
+    outputs from the block states are large matrix products.  The same arithmetic as the plain
+    recursion, regrouped: on a CPU, a scan of one small matrix–vector product per sample is
+    bound by its per-step overhead, and under ``vmap`` over positions by one tiny batched dot
+    per position and step.  Returns the outputs (n, n_out) and, per sample, whether its block
+    state is finite."""
+    n, m = W.shape
+    nb = -(-n // K)
+    Wp = jnp.concatenate([W, jnp.zeros((nb * K - n, m))]).reshape(nb, K, m)
+    powers = [jnp.eye(A.shape[0])]
+    for _ in range(K):
+        powers.append(A @ powers[-1])
+    AK = powers[K]
+    # Input to block state: G = [A^{K−1}B, …, AB, B] (n × K·m).
+    G = jnp.concatenate([powers[K - 1 - i] @ B for i in range(K)], axis=1)
+    U = Wp.reshape(nb, K * m) @ G.T
+
+    def body(s, u):
+        return AK @ s + u, s
+
+    S = jax.lax.scan(body, jnp.zeros(A.shape[0]), U)[1]  # state at each block's start
+    obs = jnp.stack([C @ powers[j] for j in range(K)])  # (K, p, n)
+    markov = [C @ powers[k] @ B for k in range(K)]  # C A^k B
+    p = C.shape[0]
+    zero = jnp.zeros((p, m))
+    T = jnp.block([[D if i == j else markov[j - 1 - i] if i < j else zero for i in range(K)]
+                   for j in range(K)])  # (K·p, K·m), block lower triangular
+    Y = jnp.einsum("jon,cn->cjo", obs, S) + (Wp.reshape(nb, K * m) @ T.T).reshape(nb, K, p)
+    finite = jnp.repeat(jnp.all(jnp.isfinite(S), axis=1), K)[:n]
+    return Y.reshape(nb * K, p)[:n], finite
+
+
+def _first_bad(finite, Y, W, bound):
+    """Index of the first output sample whose state is non-finite (``finite`` false) or whose
+    scale error is beyond ``bound`` (n when none); the outputs from there on are frozen at the
+    last good sample, so a diverging run never hands NaN or overflow to the user."""
     n = W.shape[0]
     e = W[:, 0] - Y[:, 1]
-    good = jnp.isfinite(e) & (jnp.abs(e) <= bound) & jnp.all(jnp.isfinite(X), axis=1)
+    good = jnp.isfinite(e) & (jnp.abs(e) <= bound) & finite & jnp.all(jnp.isfinite(Y), axis=1)
     first_bad = jnp.where(jnp.all(good), n, jnp.argmin(good)).astype(jnp.int32)
     keep = jnp.arange(n, dtype=jnp.int32) < first_bad
     last = jnp.maximum(first_bad - 1, 0)
@@ -836,7 +883,7 @@ def _ode(loop, plant, method: PadeODE, W, t, pos0, moving, n_modes, n_el, bound)
     if method.stepsize_controller is not None:
         controller = method.stepsize_controller
     elif isinstance(solver, ExponentialFOH):
-        controller = diffrax.ConstantStepSize()
+        controller = diffrax.StepTo(ts=t)
     else:
         # Steps end on the input samples: the first-order-hold input has a kink at each one,
         # which an error estimate spanning it would mistake for stiffness.
@@ -848,10 +895,9 @@ def _ode(loop, plant, method: PadeODE, W, t, pos0, moving, n_modes, n_el, bound)
     if max_steps is None:
         max_steps = n + 2 if isinstance(solver, ExponentialFOH) else 100_000
 
-    # Divergence: an event when the scale error leaves the bound (a state turning non-finite
-    # is caught by the solver / the same check on the saved values).
+    dt0 = None if isinstance(controller, diffrax.StepTo) else method.dt
     sol = diffrax.diffeqsolve(
-        term, solver, t0=0.0, t1=t[-1], dt0=method.dt, y0=jnp.zeros(A0.shape[0]),
+        term, solver, t0=0.0, t1=t[-1], dt0=dt0, y0=jnp.zeros(A0.shape[0]),
         saveat=diffrax.SaveAt(ts=t), stepsize_controller=controller, adjoint=adjoint,
         max_steps=max_steps, throw=False,
     )
@@ -863,7 +909,7 @@ def _ode(loop, plant, method: PadeODE, W, t, pos0, moving, n_modes, n_el, bound)
     else:
         Y = X @ cl.C.T + W @ cl.D.T
         pos = jnp.full(n, pos0)
-    first_bad, Y = _first_bad(X, Y, W, bound)
+    first_bad, Y = _first_bad(jnp.all(jnp.isfinite(X), axis=1), Y, W, bound)
     if not moving:
         growth = _growth_rate(_expm(cl.A * dt), dt)
         unstable = growth >= 0

@@ -1,7 +1,7 @@
 """The ``fdjax`` command line.
 
     fdjax demo    [--out DIR]   3M2S and reference-drive numbers, and the figures
-    fdjax figures [--out DIR]   the paper's figures so far (Figs. 2, 3, 5, 10, 11, 12, 14)
+    fdjax figures [--out DIR]   the paper's figures so far (Figs. 2, 3, 5, 10-12, 14, 16, 17)
     fdjax modes   [--out DIR] [--positions N] [--n-modes N] [--source fit|model]
                                 modes of h21 over the travel: table, CSV and JSON
 """
@@ -87,6 +87,50 @@ def loop_figures(out: str, pos: np.ndarray, f: np.ndarray, H: np.ndarray) -> Non
     ).savefig(os.path.join(out, "fig14_peak_filter.png"), dpi=90)
 
 
+FIG16_POSITION_M = 0.115  # the paper's Figs. 16-17 are at Y_table = 115 mm
+SERVO_PERIOD_S = 1.25e-4  # 8 kHz; tau = 250 us is two periods
+
+
+def hand_set_mcm():
+    """The hand-set MCM of Fig. 17 (the tuning issue replaces it): a peak filter on the
+    heavily damped mode group around 115 Hz and a notch on the screw mode near 1 kHz."""
+    import fdjax
+
+    return fdjax.MCM(
+        fdjax.PeakFilter(0.5, 2 * np.pi * 115.0, 0.5, np.radians(-75.0)),
+        fdjax.NotchFilter(2 * np.pi * 1000.0, 0.05, 0.5),
+    )
+
+
+def simulation_figures(out: str) -> dict:
+    """Figs. 16-17: PID (with / without feed-forward) and double loop with MCM tracking the
+    short-stroke reciprocating motion at Y_table = 115 mm, sampled-data simulation at 8 kHz."""
+    import fdjax
+    from fdjax import plots
+
+    drive = fdjax.reference_drive()
+    ref = fdjax.reciprocating(cycles=2)
+    method = fdjax.SampledData(SERVO_PERIOD_S)
+    run = dict(position_m=FIG16_POSITION_M, duration=0.5)
+    k_ffa = fdjax.DoubleLoop().k_ffa  # J_eq/(k_m i_sc): the rigid drive's ideal feed-forward
+    pid = {
+        "PID w/o FFC": fdjax.simulate(fdjax.PIDLoop(), drive, ref, method, **run),
+        "PID w/ FFC": fdjax.simulate(fdjax.PIDLoop(k_ffa=k_ffa), drive, ref, method, **run),
+    }
+    mcm = {
+        "P/PI + FFC, no MCM": fdjax.simulate(fdjax.DoubleLoop(), drive, ref, method, **run),
+        "P/PI + FFC + MCM": fdjax.simulate(fdjax.DoubleLoop(mcm=hand_set_mcm()), drive, ref,
+                                           method, **run),
+    }
+    where = f"$Y_{{table}}$ = {FIG16_POSITION_M * 1e3:.0f} mm, sampled data at 8 kHz"
+    plots.plot_tracking(pid, title=f"Tracking with PID control, {where} (paper Fig. 16)").savefig(
+        os.path.join(out, "fig16_pid_tracking.png"), dpi=100)
+    plots.plot_tracking(mcm, title=f"Tracking with the double loop and MCM, {where} "
+                        "(paper Fig. 17)").savefig(os.path.join(out, "fig17_mcm_tracking.png"),
+                                                   dpi=100)
+    return {k: float(v.rms_error()) for k, v in {**pid, **mcm}.items()}
+
+
 def demo(out: str) -> None:
     """The 3M2S and the reference drive: numbers printed, figures written to ``out``."""
     os.makedirs(out, exist_ok=True)
@@ -94,6 +138,9 @@ def demo(out: str) -> None:
     print("3M2S (paper Sec. 2): natural frequencies " + ", ".join(f"{x:.1f} Hz" for x in fn[1:]))
     pos, f, H = drive_figures(out)
     loop_figures(out, pos, f, H)
+    rms = simulation_figures(out)
+    print(f"Reciprocating motion at {FIG16_POSITION_M * 1e3:.0f} mm, RMS scale error (µm): "
+          + ", ".join(f"{k} {v * 1e6:.3g}" for k, v in rms.items()))
     print("Reference drive, peaks of |h21| = |x2/T1| (Hz):")
     for p in (0, len(pos) // 2, len(pos) - 1):
         pk = _peaks(f, np.abs(H[p, :, 1, 0]), 20.0, 3000.0)
@@ -160,6 +207,7 @@ def main(argv=None) -> int:
         three_mass_figures(args.out)
         pos, f, H = drive_figures(args.out)
         loop_figures(args.out, pos, f, H)
+        simulation_figures(args.out)
         print(f"figures written to {args.out}/")
     elif args.command == "modes":
         if args.positions < 2 or args.n_modes < 1:

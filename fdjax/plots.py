@@ -25,6 +25,7 @@ __all__ = [
     "plot_frf_cloud",
     "plot_resonant_phase",
     "plot_peak_filter_effect",
+    "plot_tracking",
 ]
 
 _OUT_LABEL = {"theta1": r"$\theta_1$", "x2": r"$x_2$", "x3": r"$x_3$"}
@@ -300,5 +301,46 @@ def plot_peak_filter_effect(
     plt.setp(mag.get_xticklabels(), visible=False)
     fig.suptitle(f"Peak filter on the target mode, {loop_label}, over the table travel "
                  "(paper Fig. 14)")
+    fig.tight_layout()
+    return fig
+
+
+def plot_tracking(runs, *, title, tool=False):
+    """Paper Figs. 16–17: tracking responses and errors of simulated runs.
+
+    Top: the reference r and the scale position x2 (mm) over time; bottom: the scale error
+    e2 = r − x2 (µm), with its RMS in the legend (and the tool-point error e3 = r − x3 dashed
+    when ``tool``).
+
+    Args:
+        runs: ``{label: Simulation}`` — results of :func:`fdjax.simulate` on the same reference.
+        title: figure title (controller, position).
+        tool: also draw the tool-point error.
+    """
+    fig, (ax_r, ax_e) = plt.subplots(2, 1, figsize=(10, 7), sharex=True,
+                                     gridspec_kw=dict(height_ratios=[1.0, 1.2]))
+    colors = plt.cm.tab10(np.arange(len(runs)))
+    first = next(iter(runs.values()))
+    t = np.asarray(first.t)
+    ax_r.plot(t, 1e3 * np.asarray(first.reference)[:, 0], color="k", lw=2.2, alpha=0.35,
+              label="reference r")
+    for (label, sim), c in zip(runs.items(), colors):
+        e2, rms = np.asarray(sim.error_scale), float(np.sqrt(np.mean(np.square(sim.error_scale))))
+        ax_r.plot(np.asarray(sim.t), 1e3 * np.asarray(sim.x2), color=c, lw=1.0,
+                  label=f"{label}: $x_2$")
+        ax_e.plot(np.asarray(sim.t), 1e6 * e2, color=c, lw=1.0,
+                  label=f"{label}: $e_2 = r - x_2$ (RMS {rms * 1e6:.3g} µm)")
+        if tool:
+            ax_e.plot(np.asarray(sim.t), 1e6 * np.asarray(sim.error_tool), color=c, lw=0.8,
+                      ls="--", label=f"{label}: $e_3 = r - x_3$")
+    ax_r.set_ylabel("position (mm)")
+    ax_r.legend(fontsize=8, loc="upper right")
+    ax_e.axhline(0, color="k", lw=0.6)
+    ax_e.set_ylabel("tracking error (µm)")
+    ax_e.set_xlabel("time (s)")
+    ax_e.legend(fontsize=8, loc="upper right")
+    for ax in (ax_r, ax_e):
+        ax.grid(True, alpha=0.3)
+    fig.suptitle(title)
     fig.tight_layout()
     return fig
