@@ -365,6 +365,9 @@ def test_bad_input_messages(plant, reference):
                        disturbance=np.zeros(3))
     with pytest.raises(ValueError, match=r"simulate\(moving=True\)"):
         fdjax.simulate(fdjax.DoubleLoop(), plant, reference, moving=True)
+    with pytest.raises(ValueError, match=r"BacksolveAdjoint\(\)\)` is not supported"):
+        fdjax.simulate(fdjax.DoubleLoop(), plant, reference,
+                       fdjax.PadeODE(adjoint=diffrax.BacksolveAdjoint()), duration=0.01)
     d = fdjax.reference_drive()
     with pytest.raises(ValueError, match=r"DoubleLoop\(i_sc=...\)` must be the drive's screw"):
         fdjax.simulate(fdjax.DoubleLoop(i_sc=2 * d.screw.ratio), d, reference, position_m=0.2)
