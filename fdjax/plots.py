@@ -308,38 +308,42 @@ def plot_peak_filter_effect(
 def plot_tracking(runs, *, title, tool=False):
     """Paper Figs. 16–17: tracking responses and errors of simulated runs.
 
-    Top: the reference r and the scale position x2 (mm) over time; bottom: the scale error
-    e2 = r − x2 (µm), with its RMS in the legend (and the tool-point error e3 = r − x3 dashed
-    when ``tool``).
+    Top: the reference r and the scale position x2 (mm) over time.  Below, one panel per run
+    with its own scale (the errors of different controllers differ by orders of magnitude):
+    the scale error e2 = r − x2 (µm), its RMS in the legend, and the tool-point error
+    e3 = r − x3 dashed when ``tool``.
 
     Args:
         runs: ``{label: Simulation}`` — results of :func:`fdjax.simulate` on the same reference.
         title: figure title (controller, position).
         tool: also draw the tool-point error.
     """
-    fig, (ax_r, ax_e) = plt.subplots(2, 1, figsize=(10, 7), sharex=True,
-                                     gridspec_kw=dict(height_ratios=[1.0, 1.2]))
-    colors = plt.cm.tab10(np.arange(len(runs)))
+    n = len(runs)
+    fig, axes = plt.subplots(1 + n, 1, figsize=(10, 3.2 + 2.3 * n), sharex=True,
+                             gridspec_kw=dict(height_ratios=[1.3] + [1.0] * n))
+    ax_r = axes[0]
+    colors = plt.cm.tab10(np.arange(n))
     first = next(iter(runs.values()))
-    t = np.asarray(first.t)
-    ax_r.plot(t, 1e3 * np.asarray(first.reference)[:, 0], color="k", lw=2.2, alpha=0.35,
-              label="reference r")
-    for (label, sim), c in zip(runs.items(), colors):
-        e2, rms = np.asarray(sim.error_scale), float(np.sqrt(np.mean(np.square(sim.error_scale))))
-        ax_r.plot(np.asarray(sim.t), 1e3 * np.asarray(sim.x2), color=c, lw=1.0,
-                  label=f"{label}: $x_2$")
-        ax_e.plot(np.asarray(sim.t), 1e6 * e2, color=c, lw=1.0,
-                  label=f"{label}: $e_2 = r - x_2$ (RMS {rms * 1e6:.3g} µm)")
+    ax_r.plot(np.asarray(first.t), 1e3 * np.asarray(first.reference)[:, 0], color="k", lw=2.4,
+              alpha=0.3, label="reference r")
+    for ax_e, (label, sim), c in zip(axes[1:], runs.items(), colors):
+        t = np.asarray(sim.t)
+        e2 = np.asarray(sim.error_scale)
+        rms = float(np.sqrt(np.mean(np.square(e2))))
+        ax_r.plot(t, 1e3 * np.asarray(sim.x2), color=c, lw=1.0, label=f"{label}: $x_2$")
+        ax_e.plot(t, 1e6 * e2, color=c, lw=1.0,
+                  label=f"$e_2 = r - x_2$, RMS {rms * 1e6:.3g} µm")
         if tool:
-            ax_e.plot(np.asarray(sim.t), 1e6 * np.asarray(sim.error_tool), color=c, lw=0.8,
-                      ls="--", label=f"{label}: $e_3 = r - x_3$")
+            ax_e.plot(t, 1e6 * np.asarray(sim.error_tool), color=c, lw=0.8, ls="--",
+                      label="$e_3 = r - x_3$")
+        ax_e.axhline(0, color="k", lw=0.6)
+        ax_e.set_ylabel("error (µm)")
+        ax_e.set_title(label, fontsize=9, loc="left")
+        ax_e.legend(fontsize=8, loc="upper right")
     ax_r.set_ylabel("position (mm)")
     ax_r.legend(fontsize=8, loc="upper right")
-    ax_e.axhline(0, color="k", lw=0.6)
-    ax_e.set_ylabel("tracking error (µm)")
-    ax_e.set_xlabel("time (s)")
-    ax_e.legend(fontsize=8, loc="upper right")
-    for ax in (ax_r, ax_e):
+    axes[-1].set_xlabel("time (s)")
+    for ax in axes:
         ax.grid(True, alpha=0.3)
     fig.suptitle(title)
     fig.tight_layout()
