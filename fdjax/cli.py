@@ -83,8 +83,8 @@ def loop_figures(out: str, pos: np.ndarray, f: np.ndarray, H: np.ndarray) -> Non
     without = fdjax.open_loop(fdjax.DoubleLoop(), H[fam], f)
     with_pf = fdjax.open_loop(fdjax.DoubleLoop(mcm=fdjax.MCM(peak)), H[fam], f)
     plots.plot_peak_filter_effect(
-        f, pos[fam], without.outer, with_pf.outer, loop_label="outer (position) loop $L_p$",
-        radius=1.6, band_hz=(110.0, 155.0),
+        f, pos[fam], without.inner, with_pf.inner, loop_label="inner (speed) loop $L_v$",
+        radius=2.5, band_hz=(110.0, 155.0),
     ).savefig(os.path.join(out, "fig14_peak_filter.png"), dpi=90)
 
 
