@@ -13,6 +13,7 @@ __version__ = "0.1.0"
 
 from ._calibrate import (
     TABLE_1 as TABLE_1,
+    TABLE_1_POSITION_M as TABLE_1_POSITION_M,
     DriveModes as DriveModes,
     ModalData as ModalData,
     ModelUpdate as ModelUpdate,

@@ -42,7 +42,7 @@ from ._statespace import DEFAULT_ELEMENTS, fe_matrices
 
 __all__ = [
     "ModalData", "DriveModes", "ModelUpdate", "drive_modes", "track_drive_modes",
-    "update_model", "TABLE_1",
+    "update_model", "TABLE_1", "TABLE_1_POSITION_M",
 ]
 
 

@@ -25,8 +25,9 @@ def H(drive):
 def test_shape_and_units(H):
     assert H.shape == (POS.size, FREQ.size, 3, 2)
     assert H.dtype == np.complex128
-    # receptances of a machine-tool axis: x2/F3 of order 1e-9…1e-6 m/N below 1 kHz
-    assert 1e-10 < np.median(np.abs(H[:, FREQ > 100, 1, 1])) < 1e-6
+    # receptances of a machine-tool axis: x2/F3 above 100 Hz lies near the mass line of the
+    # 700 kg saddle, 1/(mω²) = 3.6e-12 m/N at its geometric-mean frequency ≈ 550 Hz
+    assert 1e-12 < np.median(np.abs(H[:, FREQ > 100, 1, 1])) < 1e-10
 
 
 def test_coupled_equals_direct_assembly(drive, H):
@@ -54,10 +55,21 @@ def test_rigid_body_asymptote(drive):
     w = 2 * np.pi * f
     rigid = isc / (-(w**2) * J + 1j * w * cd)
     Hf = np.asarray(drive.frf([0.4], f))[0]
-    # the elastic correction is O((f/f1)²) ≈ 1e-4 at 1 Hz for f1 ≈ 100 Hz
-    np.testing.assert_allclose(Hf[:, 1, 0], rigid, rtol=2e-4)
-    np.testing.assert_allclose(Hf[:, 2, 0], rigid, rtol=2e-4)
-    np.testing.assert_allclose(Hf[:, 0, 0], 1 / (-(w**2) * J + 1j * w * cd), rtol=2e-4)
+    # Elastic corrections at 1 Hz: Σ_r O((f/f_r)²) over the three low modes (49.5, 95, 131 Hz),
+    # at most 3 (f/f1)²; and, first order in f, the guideway damping force ω c_x x_c deflects
+    # the axial supports (k_de + k_fe in parallel) and pitches the saddle through the nut
+    # (moment arm h_n, pitch stiffness k_ψ), seen at height h: ω c_x (1/k_ax + |h h_n|/k_ψ).
+    # ×2 on the first-order terms (estimates).  Measured: 7e-4 (θ1), 8e-4 (x2), 4.1e-3 (x3).
+    a, wc = drive.axial, 2 * np.pi * 1.0 * float(c.axial_damping)
+    k_ax = float(a.drive_end_stiffness) + float(a.free_end_stiffness)
+
+    def tol(h):
+        arm = abs(h * float(c.nut_height)) / float(c.pitch_stiffness)
+        return 3 * (1.0 / 49.5) ** 2 + 2 * wc * (1 / k_ax + arm)
+
+    np.testing.assert_allclose(Hf[:, 1, 0], rigid, rtol=tol(float(c.scale_height)))
+    np.testing.assert_allclose(Hf[:, 2, 0], rigid, rtol=tol(float(c.tool_height)))
+    np.testing.assert_allclose(Hf[:, 0, 0], 1 / (-(w**2) * J + 1j * w * cd), rtol=tol(0.0))
 
 
 def _peak_freqs(h, f, fmin, fmax):
@@ -68,16 +80,20 @@ def _peak_freqs(h, f, fmin, fmax):
 
 
 def test_modes_move_with_position(drive):
-    f = np.linspace(50.0, 2500.0, 6000)
-    H = np.asarray(drive.frf([0.1, 0.7], f))
-    # first axial mode: the screw's axial stiffness at the nut falls as the nut moves away
-    p_near = _peak_freqs(H[0, :, 1, 0], f, 50, 300)[0]
-    p_far = _peak_freqs(H[1, :, 1, 0], f, 50, 300)[0]
-    assert p_far < 0.85 * p_near
-    # higher modes move more (paper Sec. 3.2): the torsional mode of the free screw span
-    hi_near = _peak_freqs(H[0, :, 1, 0], f, 900, 2200)
-    hi_far = _peak_freqs(H[1, :, 1, 0], f, 900, 2200)
-    assert abs(hi_far[0] - hi_near[0]) / hi_near[0] > 0.1
+    """The calibrated drive's low modes (saddle and coupling, 49–131 Hz) hardly move; the screw's
+    axial mode, whose free span and nut-point stiffness change with the nut, moves most
+    (paper Sec. 3.2: higher modes vary more)."""
+    m = fdjax.track_drive_modes(fdjax.drive_modes(drive, np.array([0.1, 0.7]), n_modes=6))
+    f = np.asarray(m.frequency_hz)
+    change = np.abs(f[1] / f[0] - 1)
+    assert np.all(change[:4] < 0.03), f  # measured ≤ 2.0 % (mode 2)
+    assert change[4] > 0.1, f  # the screw's axial mode: 1494 → 1320 Hz
+    # the same movement in the FRF itself: the axial-mode peak of h21 between 1.2 and 1.7 kHz
+    # (1492 → 1285 Hz; at 0.7 m the mode is damped, ζ ≈ 0.05, and its peak sits 2.7 % low)
+    fr = np.linspace(1200.0, 1700.0, 2001)
+    H = np.asarray(drive.frf([0.1, 0.7], fr))[:, :, 1, 0]
+    near, far = _peak_freqs(H[0], fr, 1200, 1700), _peak_freqs(H[1], fr, 1200, 1700)
+    assert abs(near[0] / f[0, 4] - 1) < 0.01 and far[0] < 0.9 * near[0], (near, far)
 
 
 def test_grad_matches_finite_differences(drive):

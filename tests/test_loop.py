@@ -151,7 +151,10 @@ def test_margins_match_python_control(name, twin):
         tol = margin_bounds(sys, ref, mine, eval_err)
         for k, (a, b, t) in enumerate(zip(mine, ref, tol)):
             assert np.isfinite(a), (name, k)
-            assert abs(a / b - 1) <= 4 * t, (name, k, a, b, t)  # 4: first-order estimates
+            # 4: first-order estimates; + 1e-12: the floor of python-control's polynomial
+            # evaluation at the crossings (measured 7.4e-13 on the double loop's outer gain
+            # margin, where the estimate gives 7e-14)
+            assert abs(a / b - 1) <= 4 * t + 1e-12, (name, k, a, b, t)
             assert abs(a / b - 1) <= 1e-6, (name, k, a, b)  # the issue's requirement
 
 
@@ -432,19 +435,27 @@ def test_default_gains_stable_over_the_travel(drive, frf):
             assert np.all(np.asarray(st.stable)), st.message
             assert "stable at position 0.7 m" in st.message
     m = _loop.loop_margins(DoubleLoop(), frf, FREQ)
-    assert np.min(m.inner.gain_margin) > 10 and np.min(m.inner.phase_margin_deg) > 70
-    assert np.min(m.outer.gain_margin) > 4.5 and np.min(m.outer.phase_margin_deg) > 80
-    assert np.min(m.outer.modulus_margin) > 0.7
-    # the non-collocated axial mode limits the position loop more towards the screw end
-    assert np.all(np.diff(np.asarray(m.outer.gain_margin)) < 0)
+    # DoubleLoop docstring: speed loop 34.5 Hz, GM 13.5, PM 75°; position loop 7.0 Hz, GM 7.3,
+    # PM 84°, MM 0.83 (each within 1 % over the travel)
+    assert np.min(m.inner.gain_margin) > 13 and np.min(m.inner.phase_margin_deg) > 74
+    assert 30 < np.min(m.inner.gain_crossover_hz) and np.max(m.inner.gain_crossover_hz) < 40
+    assert np.min(m.outer.gain_margin) > 7 and np.min(m.outer.phase_margin_deg) > 80
+    assert np.min(m.outer.modulus_margin) > 0.8
+    assert 5 < np.min(m.outer.gain_crossover_hz) and np.max(m.outer.gain_crossover_hz) < 10
     p = _loop.loop_margins(PIDLoop(), frf, FREQ).outer
-    assert np.min(p.gain_margin) > 2.5 and np.min(p.phase_margin_deg) > 50
+    # soft, as the paper's baseline: crossover 1.6 Hz, PM 53°, GM 9.0 → 8.6 over the travel
+    assert np.max(p.gain_crossover_hz) < 2 and np.min(p.phase_margin_deg) > 50
+    assert np.min(p.gain_margin) > 8.5
+    # its phase crossover lies below the saddle mode at 95 Hz, which rises and loses damping
+    # towards the screw end (95.1 → 97.0 Hz, ζ 0.076 → 0.073): the margin falls there
+    assert np.all(np.diff(np.asarray(p.gain_margin)) < 0)
 
 
 def test_unstable_gain_is_reported_with_its_position(drive, frf):
-    """A position gain above the margin at the screw end: Nyquist (gain margin < 1) and the
+    """The default PID loop with its gains scaled 8.8× (its gain margin is 9.0 at 0.1 m falling
+    to 8.6 at 0.7 m): unstable towards the screw end only.  Nyquist (gain margin < 1) and the
     poles agree, and the result names the position."""
-    loop = DoubleLoop(kp=300.0)
+    loop = PIDLoop(kp=8.8 * 1.5e3, ki=8.8 * 5.0e3, kd=8.8 * 100.0)
     m = _loop.loop_margins(loop, frf, FREQ)
     st = _loop.check_stability(loop, drive, position_m=POSITIONS)
     unstable_poles = ~np.asarray(st.stable)
