@@ -87,8 +87,10 @@ def report(title, res):
             f"  {i + 1}  | {float(T.frequency_hz[i]):6.0f} {float(T.damping[i]):.3f} "
             f"{float(T.phase_deg[i]):6.0f} | {float(res.modes.frequency_hz[i]):7.1f} "
             f"{float(res.modes.damping[i]):.4f} {float(res.modes.phase_deg[i]):7.1f} | "
-            f"{100 * float(res.frequency_error[i]):+5.1f} {100 * float(res.damping_error[i]):+6.1f} "
-            f"{float(res.phase_error_deg[i]):+7.1f} | {''.join('yn'[int(not x)] for x in met[:, i])}"
+            f"{100 * float(res.frequency_error[i]):+5.1f} "
+            f"{100 * float(res.damping_error[i]):+6.1f} "
+            f"{float(res.phase_error_deg[i]):+7.1f} | "
+            f"{''.join('yn'[int(not x)] for x in met[:, i])}"
         )
 
 

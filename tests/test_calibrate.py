@@ -136,7 +136,8 @@ def test_reference_drive_meets_table_1_or_the_documented_shortfall(drive):
     _check_against_table_1(f_err, z_err, p_err)
     # they are the five lowest flexible modes of h21, all visible in the FRF
     m = drive_modes(drive, y, n_modes=6)
-    np.testing.assert_allclose(res.modes.frequency_hz, m.frequency_hz[:5], rtol=1e-9)  # eig round-off
+    # rtol: eig round-off between two compiled programs
+    np.testing.assert_allclose(res.modes.frequency_hz, m.frequency_hz[:5], rtol=1e-9)
     assert np.all(np.asarray(m.prominence[:5]) > 0.05)
     # cross-check: the same modes identified from the exact FRF (no model internals)
     f = np.geomspace(10.0, 2000.0, 2000)
