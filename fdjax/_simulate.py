@@ -694,6 +694,10 @@ def simulate(
         duration = getattr(reference, "duration", None)
         if duration is None:
             raise ValueError(f"`{fn}(duration=...)` is required for this reference")
+        knots = getattr(reference, "t_knots", None)
+        if not _checks.is_concrete(duration) and knots is not None and _checks.is_concrete(knots):
+            # inside jit, indexing a closed-over trajectory is staged: read its end on the host
+            duration = float(np.asarray(knots)[-1])
     if not _checks.is_concrete(duration):
         raise ValueError(f"`{fn}(duration=...)` must be a concrete number (it sets the number "
                          "of output samples)")

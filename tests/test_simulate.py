@@ -319,6 +319,11 @@ def test_vmap_over_positions_equals_loop(drive, reference):
         one = run(p)
         np.testing.assert_allclose(batched.x2[i], one.x2, rtol=1e-12, atol=1e-18)
     assert batched.x2.shape == (3, 601)
+    # inside jit the default duration is read from a closed-over trajectory's knots
+    short = jerk_limited(1e-4, 0.1, 2.0, 200.0)
+    x2 = jax.jit(lambda p: fdjax.simulate(loop, drive, short, fdjax.SampledData(DT), position_m=p,
+                                          n_modes=n_modes, throw=False).x2)(0.3)
+    assert x2.shape == (round(float(short.duration) / DT) + 1,)
 
 
 def test_moving_table(drive):
