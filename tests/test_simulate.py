@@ -338,8 +338,9 @@ def test_moving_table(drive):
     frozen = fdjax.simulate(loop, drive, still, fdjax.PadeODE(dt=DT), position_m=0.4,
                             duration=(n - 1) * DT, disturbance=force, n_modes=8,
                             )
-    # frozen uses the twin with its static residual D; the moving basis has none: close, not equal
-    assert _rel(moving.x3, frozen.x3) < 2e-2
+    # frozen uses the twin with its static residual D, the moving basis has none: the truncated
+    # modes' static flexibility from F3 to x3 is what separates them (measured 9e-10 relative)
+    assert _rel(moving.x3, frozen.x3) < 1e-6
 
     fast = jerk_limited(0.02, 1.0, 20.0, 2.0e4)  # 20 mm at 20 m/s²: Y moves 1 mm in 10 ms
     dur = 0.01
