@@ -677,8 +677,14 @@ def simulate(
         n_modes: modes of the twin (static); default the 4 kHz band's count.
         n_elements: screw elements of the twin (static).
         error_bound: a scale error |r − x2| beyond this (m) counts as divergence.
-        throw: raise when the run diverged or the solver failed (eagerly a RuntimeError naming
-            the time and table position; under jit an ``eqx.error_if``).
+        throw: raise when the result is not ``successful`` — the loop is unstable (growth
+            rate ≥ 0), the run diverged, or the solver failed — eagerly as a RuntimeError naming
+            the table position (and the pole, or the time it stopped); under jit as an
+            ``eqx.error_if``.
+
+    Returns:
+        A :class:`Simulation`; its ``result`` is ``successful``, ``unstable``, ``diverged`` or
+        ``solver_failed``, and ``message`` says it in words.
     """
     fn = "simulate"
     if not isinstance(loop, AbstractLoop):
