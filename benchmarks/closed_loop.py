@@ -45,6 +45,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from _timing import median_time  # benchmarks/ is on sys.path when run as a script
 
 import fdjax
 
@@ -68,15 +69,6 @@ def loadavg():
         return None
 
 
-def median_time(fn, repeats, warmup=True):
-    if warmup:
-        jax.block_until_ready(fn())  # warm-up (compiles)
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times)), [float(t) for t in times]
 
 
 def default_params():

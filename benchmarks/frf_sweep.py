@@ -19,26 +19,18 @@ import argparse
 import json
 import os
 import platform
-import time
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from _timing import median_time  # benchmarks/ is on sys.path when run as a script
 
 import fdjax
 
 N_POS, N_FREQ, N_3M = 256, 4096, 1 << 20
 
 
-def median_time(fn, repeats):
-    jax.block_until_ready(fn())  # warm-up (compiles)
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times)), [float(t) for t in times]
 
 
 # ----------------------------------------------------------------------------- NumPy baseline

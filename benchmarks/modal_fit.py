@@ -37,6 +37,7 @@ import numpy as np
 import scipy
 import scipy.linalg
 import scipy.optimize
+from _timing import median_time  # benchmarks/ is on sys.path when run as a script
 
 import fdjax  # noqa: F401  (float64)
 from fdjax._modal import identify_modes, identify_modes_batched
@@ -52,14 +53,6 @@ PHASE_DRIFT = np.array([0.0, 5.0, 30.0, 20.0, 60.0])  # degrees over the stroke 
 C0, D, NOISE = -1e-3, 1e-10, 0.01
 
 
-def median_time(fn, repeats):
-    jax.block_until_ready(fn())  # warm-up (compiles)
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times)), [float(t) for t in times]
 
 
 def synthetic_frfs(freq, positions, seed=0):
