@@ -290,7 +290,7 @@ def case_batch(args, loop, t, U):
 
     ss = jax.jit(jax.vmap(lambda p: fdjax.state_space(DRIVE, p, n_modes=N_MODES)))
     plants = ss(pos)
-    sl = eqx.filter_jit(jax.vmap(lambda pl: _sampled_impl(loop, pl, DT, DELAY_SAMPLES)))
+    sl = eqx.filter_jit(jax.vmap(lambda pl: _sampled_impl(loop, pl, DT, DELAY_SAMPLES, "fitted")))
     SL = sl(plants)
     Wj = jnp.asarray(U.T)
     scan = jax.jit(jax.vmap(lambda A, B, C, D: _lifted_outputs(A, B, C, D, Wj)))

@@ -14,7 +14,8 @@ discretisation over one period,
 
 the controller in discrete time — the motor speed by the backward difference
 v_m,k = i_sc (θ1_k − θ1_{k−1})/T, the PI (PID) blocks by Tustin's rule, the MCM as its
-prewarped second-order sections (:meth:`fdjax.MCM.discretize`) — and the delay as d states
+second-order sections (:meth:`fdjax.MCM.discretize`: pole-matched and fitted by default,
+prewarped Tustin with ``SampledData(filter_method="tustin")``) — and the delay as d states
 make one discrete LTI system :math:`s_{k+1} = A_d s_k + B_d w_k`, :math:`y_k = C_d s_k + D_d
 w_k` (:func:`sampled_closed_loop`), run by a ``lax.scan`` of matrix–vector products.  It is
 exact for the sampled loop: nothing is approximated but the plant's modal truncation.
@@ -52,7 +53,6 @@ from jaxtyping import Array, ArrayLike, Complex, Float, Int
 
 from . import _checks
 from ._drive import BallScrewDrive
-from ._filters import DiscreteFilter
 from ._loop import (
     DEFAULT_PADE_ORDER,
     AbstractLoop,
@@ -108,10 +108,14 @@ class SampledData(eqx.Module):
         delay_samples: the delay d in samples (static).  Default: τ/T of the loop, which must
             be a whole number ≥ 1 of periods.  Required when the loop is built inside
             jit/grad (its τ is then traced); τ = d·T is still checked (``eqx.error_if``).
+        filter_method: how the MCM is discretised, ``"fitted"`` (default, within 1 % of the
+            continuous filter below Nyquist/4) or ``"tustin"`` (prewarped bilinear, what most
+            drives run); see :meth:`fdjax.MCM.discretize`.
     """
 
     period: float = eqx.field(static=True, default=5.0e-5)
     delay_samples: int | None = eqx.field(static=True, default=None)
+    filter_method: str = eqx.field(static=True, default="fitted")
 
     def __check_init__(self):
         p = float(self.period)
@@ -120,6 +124,11 @@ class SampledData(eqx.Module):
         d = self.delay_samples
         if d is not None and (isinstance(d, bool) or not isinstance(d, int | np.integer) or d < 1):
             raise ValueError(f"`SampledData(delay_samples=...)` must be an int ≥ 1, got {d!r}")
+        if self.filter_method not in ("fitted", "tustin"):
+            raise ValueError(
+                "`SampledData(filter_method=...)` must be 'fitted' or 'tustin', "
+                f"got {self.filter_method!r}"
+            )
 
 
 class ExponentialFOH(diffrax.AbstractSolver):
@@ -162,7 +171,8 @@ class ExponentialFOH(diffrax.AbstractSolver):
             # reverse pass both branches' residuals at every step: 3× the gradient's time).
             Phi, G0, G1 = solver_state
             y0 = eqx.error_if(
-                y0, jnp.abs(h - self.dt) > 1e-9 * self.dt,
+                y0,
+                jnp.abs(h - self.dt) > 1e-9 * self.dt,
                 "ExponentialFOH(dt) takes steps of exactly dt on a frozen plant: use "
                 "diffrax.StepTo on a grid of spacing dt (the default of fdjax.simulate)",
             )
@@ -319,8 +329,9 @@ class Simulation(eqx.Module):
         """RMS tracking error (m) over the run: ``"scale"`` (r − x2) or ``"tool"`` (r − x3)."""
         e = {"scale": self.error_scale, "tool": self.error_tool}.get(which)
         if e is None:
-            raise ValueError(f"`Simulation.rms_error(which=...)` must be 'scale' or 'tool', "
-                             f"got {which!r}")
+            raise ValueError(
+                f"`Simulation.rms_error(which=...)` must be 'scale' or 'tool', got {which!r}"
+            )
         return jnp.sqrt(jnp.mean(e * e, axis=-1))
 
     @property
@@ -332,10 +343,15 @@ class Simulation(eqx.Module):
         k = np.atleast_1d(np.asarray(self.failed_at))
         t = np.asarray(self.t).reshape(codes.shape[0], -1)
         pos = np.asarray(self.position_m).reshape(codes.shape[0], -1)
-        poles = (None if self.least_stable_pole is None
-                 else np.atleast_1d(np.asarray(self.least_stable_pole)))
-        names = {int(getattr(SimulationResult, a)._value): a
-                 for a in ("successful", "diverged", "solver_failed", "unstable")}
+        poles = (
+            None
+            if self.least_stable_pole is None
+            else np.atleast_1d(np.asarray(self.least_stable_pole))
+        )
+        names = {
+            int(getattr(SimulationResult, a)._value): a
+            for a in ("successful", "diverged", "solver_failed", "unstable")
+        }
         lines = []
         for i, code in enumerate(codes):
             name = names[int(code)]
@@ -367,33 +383,6 @@ def _tustin(A, B, C, D, h):
     Cd = C @ Q
     Dd = D + Cd @ B * (0.5 * h)
     return Ad, Bd, Cd, Dd
-
-
-def _sos_ss(f: DiscreteFilter):
-    """(A, B, C, D) of a :class:`DiscreteFilter` (parallel bank then series cascade) in its own
-    direct-form-II-transposed states: per section y = b0 u + s1, s1' = −a1 s1 + s2 + (b1 − a1 b0)u,
-    s2' = −a2 s1 + (b2 − a2 b0) u."""
-
-    def section(row):
-        b0, b1, b2, _, a1, a2 = (row[i] for i in range(6))
-        A = jnp.stack([jnp.stack([-a1, jnp.ones_like(a1)]), jnp.stack([-a2, jnp.zeros_like(a2)])])
-        return A, jnp.stack([b1 - a1 * b0, b2 - a2 * b0]), jnp.array([1.0, 0.0]), b0
-
-    par, ser = f.parallel_sos, f.series_sos
-    blocks = [section(par[i]) for i in range(par.shape[0])]
-    n = 2 * len(blocks)
-    A = jsl.block_diag(*[b[0] for b in blocks]) if blocks else jnp.zeros((0, 0))
-    B = jnp.concatenate([b[1] for b in blocks]) if blocks else jnp.zeros(0)
-    C = jnp.concatenate([b[2] for b in blocks]) if blocks else jnp.zeros(0)
-    D = 1.0 + sum((b[3] for b in blocks), jnp.zeros(()))
-    for i in range(ser.shape[0]):
-        A2, B2, C2, D2 = section(ser[i])
-        A = jnp.block([[A, jnp.zeros((n, 2))], [B2[:, None] * C[None, :], A2]])
-        B = jnp.concatenate([B, B2 * D])
-        C = jnp.concatenate([D2 * C, C2])
-        D = D2 * D
-        n += 2
-    return A.reshape(n, n), B.reshape(n), C.reshape(n), D
 
 
 class _Rows:
@@ -450,7 +439,9 @@ def _check_delay(loop, period: float, d: int, x):
     return eqx.error_if(x, bad, f"the loop's τ must equal SampledData(delay_samples={d}) × period")
 
 
-def _sampled_impl(loop: AbstractLoop, plant: StateSpace, period: float, d: int) -> SampledLoop:
+def _sampled_impl(
+    loop: AbstractLoop, plant: StateSpace, period: float, d: int, filter_method: str
+) -> SampledLoop:
     h = jnp.asarray(period, jnp.float64)
     npl = plant.A.shape[0]
     # Plant: exact ZOH over one period.
@@ -460,7 +451,7 @@ def _sampled_impl(loop: AbstractLoop, plant: StateSpace, period: float, d: int) 
     if isinstance(loop, DoubleLoop):
         Ac = jnp.zeros((1, 1))
         Bc, Cc, Dc = jnp.ones((1, 1)), (loop.kv * loop.ki).reshape(1, 1), loop.kv.reshape(1, 1)
-        fA, fB, fC, fD = _sos_ss(loop.mcm.discretize(h))
+        fA, fB, fC, fD = loop.mcm.discretize(h, filter_method).state_space()
     elif isinstance(loop, PIDLoop):
         # z integrator and the derivative filter x_d (ẋ_d = −ω_d x_d + e), as in closed_loop.
         kd, wd = loop.kd, loop.wd
@@ -494,7 +485,8 @@ def _sampled_impl(loop: AbstractLoop, plant: StateSpace, period: float, d: int) 
         u = u_f + R.inp("r_dot") * loop.k_ffv + R.inp("r_ddot") * loop.k_ffa
     rows = [
         jnp.concatenate([Phi, jnp.zeros((npl, R.width - npl))], 1)
-        + Gam[:, :1] * T1[None, :] + Gam[:, 1:] * F3[None, :],
+        + Gam[:, :1] * T1[None, :]
+        + Gam[:, 1:] * F3[None, :],
         theta[None, :],
         jnp.concatenate([jnp.zeros((nc, npl + 1)), cA, jnp.zeros((nc, R.width - npl - 1 - nc))], 1)
         + cB[:, :1] * e[None, :],
@@ -514,7 +506,12 @@ def _sampled_impl(loop: AbstractLoop, plant: StateSpace, period: float, d: int) 
     Y = jnp.stack([theta, x2, out(2), T1])
     n = R.n
     return SampledLoop(
-        A=M[:, :n], B=M[:, n:], C=Y[:, :n], D=Y[:, n:], dt=h, position_m=plant.position_m,
+        A=M[:, :n],
+        B=M[:, n:],
+        C=Y[:, :n],
+        D=Y[:, n:],
+        dt=h,
+        position_m=plant.position_m,
         delay_samples=d,
     )
 
@@ -526,7 +523,8 @@ def sampled_closed_loop(
 
     Plant by its exact ZOH discretisation at the servo period T; motor speed by the backward
     difference of the encoder angle, ``i_sc (θ1_k − θ1_{k−1})/T``; PI (PID) by Tustin's rule;
-    MCM as its prewarped second-order sections (paper Eqs. 3–4, :meth:`fdjax.MCM.discretize`);
+    MCM as its second-order sections (paper Eqs. 3–4, :meth:`fdjax.MCM.discretize` with
+    ``method.filter_method``);
     T1_k = k_m u_{k−d}.  See the module docstring.
 
     Args:
@@ -536,7 +534,7 @@ def sampled_closed_loop(
     """
     _check_method(method, SampledData, "sampled_closed_loop")
     d = _delay_samples(loop, method)
-    return _sampled_jit(loop, plant, method.period, d)
+    return _sampled_jit(loop, plant, method.period, d, method.filter_method)
 
 
 _sampled_jit = eqx.filter_jit(_sampled_impl)
@@ -594,9 +592,13 @@ class _MovingPlant(eqx.Module):
         B = jnp.concatenate([jnp.zeros((m, 2)), MK[:, 2 * m :]], 0)
         Cq = fe.outputs @ V
         return StateSpace(
-            A=A, B=B, C=jnp.concatenate([Cq, jnp.zeros_like(Cq)], 1), D=jnp.zeros((3, 2)),
+            A=A,
+            B=B,
+            C=jnp.concatenate([Cq, jnp.zeros_like(Cq)], 1),
+            D=jnp.zeros((3, 2)),
             C_velocity=jnp.concatenate([jnp.zeros_like(Cq), Cq], 1),
-            natural_freq_hz=jnp.zeros(m), position_m=jnp.asarray(position_m, jnp.float64),
+            natural_freq_hz=jnp.zeros(m),
+            position_m=jnp.asarray(position_m, jnp.float64),
         )
 
 
@@ -688,14 +690,19 @@ def simulate(
     """
     fn = "simulate"
     if not isinstance(loop, AbstractLoop):
-        raise TypeError(f"`{fn}(loop=...)` must be an fdjax.DoubleLoop or PIDLoop, "
-                        f"got {type(loop).__name__}")
+        raise TypeError(
+            f"`{fn}(loop=...)` must be an fdjax.DoubleLoop or PIDLoop, got {type(loop).__name__}"
+        )
     if not isinstance(method, SampledData | PadeODE):
-        raise TypeError(f"`{fn}(method=...)` must be fdjax.SampledData or fdjax.PadeODE, "
-                        f"got {type(method).__name__}")
+        raise TypeError(
+            f"`{fn}(method=...)` must be fdjax.SampledData or fdjax.PadeODE, "
+            f"got {type(method).__name__}"
+        )
     if not callable(getattr(reference, "evaluate", None)):
-        raise TypeError(f"`{fn}(reference=...)` must have an evaluate(t) method (e.g. an "
-                        f"fdjax.Trajectory), got {type(reference).__name__}")
+        raise TypeError(
+            f"`{fn}(reference=...)` must have an evaluate(t) method (e.g. an "
+            f"fdjax.Trajectory), got {type(reference).__name__}"
+        )
     if duration is None:
         duration = getattr(reference, "duration", None)
         if duration is None:
@@ -705,8 +712,9 @@ def simulate(
             # inside jit, indexing a closed-over trajectory is staged: read its end on the host
             duration = float(np.asarray(knots)[-1])
     if not _checks.is_concrete(duration):
-        raise ValueError(f"`{fn}(duration=...)` must be a concrete number (it sets the number "
-                         "of output samples)")
+        raise ValueError(
+            f"`{fn}(duration=...)` must be a concrete number (it sets the number of output samples)"
+        )
     duration = float(duration)
     if not (math.isfinite(duration) and duration > 0):
         raise ValueError(f"`{fn}(duration=...)` must be positive, got {duration:.6g}")
@@ -716,16 +724,20 @@ def simulate(
     dt = method.period if isinstance(method, SampledData) else method.dt
     n = int(round(duration / dt)) + 1
     if moving and not (isinstance(method, PadeODE) and isinstance(plant, BallScrewDrive)):
-        raise ValueError(f"`{fn}(moving=True)` needs method=PadeODE(...) and a BallScrewDrive "
-                         "plant")
+        raise ValueError(
+            f"`{fn}(moving=True)` needs method=PadeODE(...) and a BallScrewDrive plant"
+        )
     if isinstance(plant, BallScrewDrive):
         if position_m is None:
             raise ValueError(f"`{fn}(position_m=...)` is required when the plant is a drive")
         plant._check_positions(position_m)
         ratio = plant.screw.ratio
-        if (isinstance(loop, DoubleLoop) and _checks.is_concrete(loop.i_sc)
-                and _checks.is_concrete(ratio)
-                and abs(float(loop.i_sc) / float(ratio) - 1.0) > 1e-9):
+        if (
+            isinstance(loop, DoubleLoop)
+            and _checks.is_concrete(loop.i_sc)
+            and _checks.is_concrete(ratio)
+            and abs(float(loop.i_sc) / float(ratio) - 1.0) > 1e-9
+        ):
             raise ValueError(
                 f"`DoubleLoop(i_sc=...)` must be the drive's screw ratio lead/2π = "
                 f"{float(ratio):.6g} m/rad (it scales the encoder speed), "
@@ -737,19 +749,33 @@ def simulate(
         if position_m is not None or moving:
             raise ValueError(f"`{fn}(position_m=...)` is only for a BallScrewDrive plant")
     else:
-        raise TypeError(f"`{fn}(plant=...)` must be an fdjax.StateSpace or BallScrewDrive, "
-                        f"got {type(plant).__name__}")
+        raise TypeError(
+            f"`{fn}(plant=...)` must be an fdjax.StateSpace or BallScrewDrive, "
+            f"got {type(plant).__name__}"
+        )
     if disturbance is None:
         force = jnp.zeros(n)
     else:
         force = jnp.asarray(disturbance, jnp.float64)
         if force.shape != (n,):
-            raise ValueError(f"`{fn}(disturbance=...)` must have shape ({n},) (one value per "
-                             f"output sample), got {force.shape}")
+            raise ValueError(
+                f"`{fn}(disturbance=...)` must have shape ({n},) (one value per "
+                f"output sample), got {force.shape}"
+            )
     d = _delay_samples(loop, method) if isinstance(method, SampledData) else 0
     sim, A = _simulate_jit(
-        loop, plant, reference, method, position_m, force, n, d, moving,
-        None if n_modes is None else int(n_modes), int(n_elements), eb,
+        loop,
+        plant,
+        reference,
+        method,
+        position_m,
+        force,
+        n,
+        d,
+        moving,
+        None if n_modes is None else int(n_modes),
+        int(n_elements),
+        eb,
     )
     if A is not None and _checks.is_concrete(A):
         # Poles on the host (NumPy): a batched non-symmetric eig has dead-locked XLA:CPU.
@@ -757,8 +783,9 @@ def simulate(
         if isinstance(method, SampledData):
             lam = np.log(lam[lam != 0]) / method.period  # z = 0: the delay line's shift
         pole = lam[np.argmax(lam.real)]
-        sim = eqx.tree_at(lambda s: s.least_stable_pole, sim, jnp.asarray(pole),
-                          is_leaf=lambda x: x is None)
+        sim = eqx.tree_at(
+            lambda s: s.least_stable_pole, sim, jnp.asarray(pole), is_leaf=lambda x: x is None
+        )
     if throw:
         failed = sim.result != SimulationResult.successful
         if _checks.is_concrete(sim.failed_at):
@@ -770,8 +797,9 @@ def simulate(
 
 
 @eqx.filter_jit
-def _simulate_jit(loop, plant, reference, method, position_m, force, n, d, moving, n_modes,
-                  n_el, error_bound):
+def _simulate_jit(
+    loop, plant, reference, method, position_m, force, n, d, moving, n_modes, n_el, error_bound
+):
     dt = method.period if isinstance(method, SampledData) else method.dt
     t = jnp.arange(n, dtype=jnp.float64) * dt
     r, v, a = (jnp.asarray(x, jnp.float64) for x in reference.evaluate(t)[:3])
@@ -783,12 +811,12 @@ def _simulate_jit(loop, plant, reference, method, position_m, force, n, d, movin
     else:
         pos0 = plant.position_m
     if isinstance(method, SampledData):
-        sl = _sampled_impl(loop, plant, method.period, d)
-        Y, finite = _lifted_outputs(_check_delay(loop, method.period, d, sl.A), sl.B, sl.C,
-                                    sl.D, W)
+        sl = _sampled_impl(loop, plant, method.period, d, method.filter_method)
+        Y, finite = _lifted_outputs(_check_delay(loop, method.period, d, sl.A), sl.B, sl.C, sl.D, W)
         failed_at, Y = _first_bad(finite, Y, W, error_bound)
-        result = SimulationResult.where(failed_at < n, SimulationResult.diverged,
-                                        SimulationResult.successful)
+        result = SimulationResult.where(
+            failed_at < n, SimulationResult.diverged, SimulationResult.successful
+        )
         growth = _growth_rate(sl.A, sl.dt)
         result = SimulationResult.where(growth >= 0, SimulationResult.unstable, result)
         pos = jnp.full(n, pos0)
@@ -798,9 +826,19 @@ def _simulate_jit(loop, plant, reference, method, position_m, force, n, d, movin
             loop, plant, method, W, t, pos0, moving, n_modes, n_el, error_bound
         )
     sim = Simulation(
-        t=t, reference=W[:, :3], theta1=Y[:, 0], x2=Y[:, 1], x3=Y[:, 2], torque=Y[:, 3],
-        current=Y[:, 3] / loop.k_motor, error_scale=r - Y[:, 1], error_tool=r - Y[:, 2],
-        position_m=pos, result=result, failed_at=failed_at, growth_rate=growth,
+        t=t,
+        reference=W[:, :3],
+        theta1=Y[:, 0],
+        x2=Y[:, 1],
+        x3=Y[:, 2],
+        torque=Y[:, 3],
+        current=Y[:, 3] / loop.k_motor,
+        error_scale=r - Y[:, 1],
+        error_tool=r - Y[:, 2],
+        position_m=pos,
+        result=result,
+        failed_at=failed_at,
+        growth_rate=growth,
     )
     return sim, A
 
@@ -856,8 +894,12 @@ def _lifted_outputs(A, B, C, D, W, K: int = _CHUNK):
     markov = [C @ powers[k] @ B for k in range(K)]  # C A^k B
     p = C.shape[0]
     zero = jnp.zeros((p, m))
-    T = jnp.block([[D if i == j else markov[j - 1 - i] if i < j else zero for i in range(K)]
-                   for j in range(K)])  # (K·p, K·m), block lower triangular
+    T = jnp.block(
+        [
+            [D if i == j else markov[j - 1 - i] if i < j else zero for i in range(K)]
+            for j in range(K)
+        ]
+    )  # (K·p, K·m), block lower triangular
     Y = jnp.einsum("jon,cn->cjo", obs, S) + (Wp.reshape(nb, K * m) @ T.T).reshape(nb, K, p)
     finite = jnp.repeat(jnp.all(jnp.isfinite(S), axis=1), K)[:n]
     return Y.reshape(nb * K, p)[:n], finite
@@ -915,9 +957,17 @@ def _ode(loop, plant, method: PadeODE, W, t, pos0, moving, n_modes, n_el, bound)
 
     dt0 = None if isinstance(controller, diffrax.StepTo) else method.dt
     sol = diffrax.diffeqsolve(
-        term, solver, t0=0.0, t1=t[-1], dt0=dt0, y0=jnp.zeros(A0.shape[0]),
-        saveat=diffrax.SaveAt(ts=t), stepsize_controller=controller, adjoint=adjoint,
-        max_steps=max_steps, throw=False,
+        term,
+        solver,
+        t0=0.0,
+        t1=t[-1],
+        dt0=dt0,
+        y0=jnp.zeros(A0.shape[0]),
+        saveat=diffrax.SaveAt(ts=t),
+        stepsize_controller=controller,
+        adjoint=adjoint,
+        max_steps=max_steps,
+        throw=False,
     )
     X = sol.ys
     if moving:
@@ -937,8 +987,9 @@ def _ode(loop, plant, method: PadeODE, W, t, pos0, moving, n_modes, n_el, bound)
     failed_at = jnp.where(solver_ok, first_bad, jnp.minimum(first_bad, n - 1))
     result = SimulationResult.where(
         solver_ok,
-        SimulationResult.where(first_bad < n, SimulationResult.diverged,
-                               SimulationResult.successful),
+        SimulationResult.where(
+            first_bad < n, SimulationResult.diverged, SimulationResult.successful
+        ),
         SimulationResult.solver_failed,
     )
     if not moving:

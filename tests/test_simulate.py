@@ -63,7 +63,7 @@ def _numpy_sampled(loop, plant, W, dt, d):
         df = loop.mcm.discretize(dt)
         par, ser = np.array(df.parallel_sos), np.array(df.series_sos)
         zp = [np.zeros(2) for _ in par]
-        zs = [np.zeros(2) for _ in ser]
+        zs = [[np.zeros(2) for _ in stage] for stage in ser]  # stage q = Σ_k its sections
         z = 0.0
         th_prev = 0.0
         kp, kv, ki = float(loop.kp), float(loop.kv), float(loop.ki)
@@ -79,10 +79,13 @@ def _numpy_sampled(loop, plant, W, dt, d):
                 yi, zp[i] = sig.sosfilt(row[None, :], [u_pi], zi=zp[i][None, :])
                 zp[i] = zp[i][0]
                 u_f = u_f + yi[0]
-            for i, row in enumerate(ser):
-                yi, zs[i] = sig.sosfilt(row[None, :], [u_f], zi=zs[i][None, :])
-                zs[i] = zs[i][0]
-                u_f = yi[0]
+            for i, stage in enumerate(ser):
+                stage_out = 0.0
+                for k, row in enumerate(stage):
+                    yi, zk = sig.sosfilt(row[None, :], [u_f], zi=zs[i][k][None, :])
+                    zs[i][k] = zk[0]
+                    stage_out += yi[0]
+                u_f = stage_out
             u = u_f + float(loop.k_ffa) * w[2]
             out.append([y[0], y[1], y[2], T1])
             th_prev = y[0]
