@@ -294,8 +294,10 @@ def test_realisation_is_exact_without_truncation_and_residual_is_static_flexibil
     np.testing.assert_allclose(np.asarray(ss.D), D_ref, rtol=1e-9, atol=0)
     # With no damping the truncated modes are quasi-static below them: D leaves each one an
     # error ω²/(ω_r² − ω²) of its term, so the error falls by r/(1 − r), r = (f/f_m)², f_m the
-    # first truncated mode (×2: terms of either sign), above a round-off floor of ~2e-12
-    # (measured with and without D at 60 Hz, where the truncation error is itself ~7e-12).
+    # first truncated mode (×2: terms of either sign), above a round-off floor of a few 1e-12
+    # (measured 2e-12 … 7e-12 with D, depending on the LAPACK build; at 60 Hz the truncation
+    # error is itself ~8e-12). The floor allowed, 2e-11, is still 8× below the error without D
+    # at 250 Hz.
     du = undamped(drive)
     f_low = np.array([60.0, 200.0, 250.0])
     H_u = np.asarray(fe_matrices(du, 0.3).frf(f_low))
@@ -304,7 +306,8 @@ def test_realisation_is_exact_without_truncation_and_residual_is_static_flexibil
     with_d = normwise_error(H_ss, H_u, du)
     without = normwise_error(H_ss - np.asarray(ss_u.D), H_u, du)  # D enters additively
     r = (f_low / (np.sqrt(lam[m]) / (2 * np.pi))) ** 2
-    assert np.all(with_d <= 2 * r / (1 - r) * without + 5e-12), (with_d, without, r)
+    assert np.all(with_d <= 2 * r / (1 - r) * without + 2e-11), (with_d, without, r)
+    assert without[-1] > 4 * 2e-11  # the D term does measurable work above the floor
 
 
 def test_python_control_cross_check():
