@@ -470,6 +470,29 @@ def test_fitted_is_exact_at_dc_and_at_the_filter_frequency_with_matched_poles(dt
         assert abs(complex(disc.transfer(1.0)) - 1) <= 1e-12
 
 
+def test_fitted_gradient_is_finite_at_the_edges():
+    # Critical damping (the cos → cosh switch of the matched poles), K = 0 (an exact fit: the
+    # Lawson weights stay put), tiny and huge damping, sections close to Nyquist.
+    f = jnp.array([50.0, 300.0, 900.0, 2500.0, 3900.0])
+
+    def loss(p):
+        m = MCM(PeakFilter(p[0], p[1], p[2], p[3]), NotchFilter(p[4], p[5], p[6]))
+        return jnp.sum(jnp.abs(m.discretize(1 / 8000).frf(f)) ** 2)
+
+    grad = jax.jit(jax.grad(loss))
+    w, wn = TWO_PI * F_PEAK, TWO_PI * F_NOTCH
+    for p in (
+        [0.5, w, 0.3, -1.0, wn, 0.05, 1.0],
+        [0.5, w, 1.0, -1.0, wn, 0.05, 0.5],
+        [0.0, w, 0.3, -1.0, wn, 0.05, 0.5],
+        [0.5, w, 1e-4, -1.0, wn, 1e-5, 1e-4],
+        [0.5, TWO_PI * 3900, 0.3, -1.0, TWO_PI * 3950, 0.05, 0.5],
+        [0.5, w, 5.0, -1.0, wn, 3.0, 8.0],
+        [0.5, w, 0.3, -1.0, wn, 0.3, 0.3],
+    ):
+        assert np.all(np.isfinite(np.asarray(grad(jnp.asarray(p))))), p
+
+
 def test_prewarping_places_a_high_notch_where_plain_tustin_misses_it():
     # A section at 1529 Hz has ω0 dt = 1.2 at 8 kHz. Plain Tustin (s = 2/dt (z−1)/(z+1)) moves
     # the notch to (2/dt) atan(ω0 dt/2) ≈ 1376 Hz, so at 1529 Hz it is far from the notch depth;
