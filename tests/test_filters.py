@@ -749,6 +749,14 @@ W = TWO_PI * F_PEAK
             r"`MCM.discretize\(dt=...\)` must be below .* Nyquist",
         ),
         (
+            lambda: PeakFilter(1.0, W, 0.1, 0.0).discretize(1e-4, "zoh"),
+            r"`PeakFilter.discretize\(method=...\)` must be 'fitted' or 'tustin', got 'zoh'",
+        ),
+        (
+            lambda: DiscreteFilter(np.ones((0, 6)), np.ones((1, 2, 5)), 1e-4),
+            r"`DiscreteFilter\(series_sos=...\)` must be a real \(n_stages, n_sections, 6\)",
+        ),
+        (
             lambda: PeakFilter(1.0, W, 0.1, 0.0).discretize([1e-4, 2e-4]),
             r"`PeakFilter.discretize\(dt=...\)` must be a real scalar",
         ),

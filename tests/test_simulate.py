@@ -51,7 +51,7 @@ def _inputs(ref, n, dt, force=None):
     return t, np.stack([r, v, a, f], 1)
 
 
-def _numpy_sampled(loop, plant, W, dt, d):
+def _numpy_sampled(loop, plant, W, dt, d, filter_method="fitted"):
     """The sampled-data loop written out sample by sample, from SciPy's pieces."""
     A, B, C, D = (np.asarray(x) for x in (plant.A, plant.B, plant.C, plant.D))
     Phi, Gam, *_ = sig.cont2discrete((A, B, C, D), dt, method="zoh")
@@ -60,7 +60,7 @@ def _numpy_sampled(loop, plant, W, dt, d):
     km = float(loop.k_motor)
     out = []
     if isinstance(loop, fdjax.DoubleLoop):
-        df = loop.mcm.discretize(dt)
+        df = loop.mcm.discretize(dt, filter_method)
         par, ser = np.array(df.parallel_sos), np.array(df.series_sos)
         zp = [np.zeros(2) for _ in par]
         zs = [[np.zeros(2) for _ in stage] for stage in ser]  # stage q = Σ_k its sections
@@ -120,15 +120,16 @@ def _rel(a, b):
     return np.max(np.abs(np.asarray(a) - np.asarray(b))) / np.max(np.abs(np.asarray(b)))
 
 
-@pytest.mark.parametrize("kind", ["double", "pid"])
+@pytest.mark.parametrize("kind", ["double", "double-tustin", "pid"])
 def test_sampled_matches_per_sample_numpy(plant, mcm, reference, kind):
-    loop = fdjax.DoubleLoop(mcm=mcm) if kind == "double" else fdjax.PIDLoop(k_ffv=10.0)
+    loop = fdjax.DoubleLoop(mcm=mcm) if kind != "pid" else fdjax.PIDLoop(k_ffv=10.0)
+    method = "tustin" if kind == "double-tustin" else "fitted"
     n = 1200
     force = np.where(np.arange(n) > 600, 50.0, 0.0)
-    sim = fdjax.simulate(loop, plant, reference, fdjax.SampledData(DT), duration=(n - 1) * DT,
-                         disturbance=force)
+    sim = fdjax.simulate(loop, plant, reference, fdjax.SampledData(DT, filter_method=method),
+                         duration=(n - 1) * DT, disturbance=force)
     _, W = _inputs(reference, n, DT, force)
-    ref = _numpy_sampled(loop, plant, W, DT, 5)
+    ref = _numpy_sampled(loop, plant, W, DT, 5, method)
     got = np.stack([sim.theta1, sim.x2, sim.x3, sim.torque], 1)
     for i in range(4):  # every channel to round-off of the recursion (10k products)
         assert _rel(got[:, i], ref[:, i]) < 1e-9, i
@@ -367,6 +368,8 @@ def test_bad_input_messages(plant, reference):
         fdjax.simulate(loop, plant, reference, fdjax.SampledData(DT))
     with pytest.raises(ValueError, match=r"SampledData\(period=...\)` must be positive"):
         fdjax.SampledData(-1.0)
+    with pytest.raises(ValueError, match=r"SampledData\(filter_method=...\)` must be 'fitted' or"):
+        fdjax.SampledData(DT, filter_method="zoh")
     with pytest.raises(ValueError, match=r"PadeODE\(pade_order=...\)"):
         fdjax.PadeODE(pade_order=0)
     with pytest.raises(ValueError, match=r"simulate\(disturbance=...\)` must have shape"):
