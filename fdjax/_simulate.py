@@ -28,9 +28,11 @@ are sampled on the output grid and interpolated linearly in between (a first-ord
 ``moving=True`` the plant's matrices follow the table, Y(t) = Y₀ + r(t): the finite-element
 matrices are rebuilt at Y(t) on every evaluation and projected on a fixed modal basis (a Ritz
 basis, the modes at Y₀), so the nut's stiffness moves along the screw during the motion (the
-paper froze the position).  The sampled loop adds the half-sample lags of the ZOH and of the
-backward difference, which the continuous loop lumps into τ: the two paths agree to O(T)
-(tested: first-order convergence as T → 0).
+paper froze the position).  The sampled path does the same sample by sample
+(:func:`_sampled_moving`: the sampled loop rebuilt at each step's midpoint position).  The
+sampled loop adds the half-sample lags of the ZOH and of the backward difference, which the
+continuous loop lumps into τ: the two paths agree to O(T) (tested: first-order convergence as
+T → 0).
 
 **Outputs** (:class:`Simulation`): θ1, x2, x3, the motor torque T1 and current T1/k_m, the
 tracking errors e2 = r − x2 (scale) and e3 = r − x3 (tool point).  A run that diverges — a
@@ -659,8 +661,11 @@ def simulate(
     * ``method=SampledData(period)`` — the exact sampled-data loop (:func:`sampled_closed_loop`)
       run by ``lax.scan``; outputs at every servo period;
     * ``method=PadeODE(dt, pade_order, solver, …)`` — the continuous loop with a Padé delay,
-      solved by ``diffrax.diffeqsolve``; outputs every ``dt``.  With ``moving=True`` the
-      plant's matrices follow the table, Y(t) = Y₀ + r(t).
+      solved by ``diffrax.diffeqsolve``; outputs every ``dt``.
+
+    With ``moving=True`` (either method, a drive plant) the plant's matrices follow the table,
+    Y(t) = Y₀ + r(t): the FE model is rebuilt along the motion and projected on the modes at Y₀
+    (exponential midpoint rule over each step; no growth rate, divergence is still caught).
 
     Differentiable (``jax.grad``) in every leaf of ``loop`` and of a drive plant; ``jax.vmap``
     over positions compiles once (pass ``throw=False`` and read ``result``).
@@ -675,7 +680,7 @@ def simulate(
         duration: simulated time (s), static; default the reference's ``duration``.
         position_m: table position Y₀ (m) for a drive plant.
         disturbance: force F3 at the tool point (N) on the output grid, (n,); default 0.
-        moving: moving-table mode (PadeODE with a drive plant only).
+        moving: moving-table mode (a drive plant; slower: the loop is rebuilt every step).
         n_modes: modes of the twin (static); default the 4 kHz band's count.
         n_elements: screw elements of the twin (static).
         error_bound: a scale error |r − x2| beyond this (m) counts as divergence.
@@ -723,9 +728,10 @@ def simulate(
         raise ValueError(f"`{fn}(error_bound=...)` must be positive, got {eb:.6g}")
     dt = method.period if isinstance(method, SampledData) else method.dt
     n = int(round(duration / dt)) + 1
-    if moving and not (isinstance(method, PadeODE) and isinstance(plant, BallScrewDrive)):
+    if moving and not isinstance(plant, BallScrewDrive):
         raise ValueError(
-            f"`{fn}(moving=True)` needs method=PadeODE(...) and a BallScrewDrive plant"
+            f"`{fn}(moving=True)` needs a BallScrewDrive plant (the model is rebuilt along the "
+            f"motion), got {type(plant).__name__}"
         )
     if isinstance(plant, BallScrewDrive):
         if position_m is None:
@@ -810,7 +816,15 @@ def _simulate_jit(
             plant = state_space(plant, pos0, n_modes=n_modes, n_elements=n_el)
     else:
         pos0 = plant.position_m
-    if isinstance(method, SampledData):
+    if isinstance(method, SampledData) and moving:
+        r_mid = jnp.asarray(reference.evaluate(t + 0.5 * dt)[0], jnp.float64)
+        Y, finite = _sampled_moving(loop, plant, method, d, W, pos0, r_mid, n_modes, n_el)
+        failed_at, Y = _first_bad(finite, Y, W, error_bound)
+        result = SimulationResult.where(
+            failed_at < n, SimulationResult.diverged, SimulationResult.successful
+        )
+        growth, A, pos = None, None, pos0 + W[:, 0]
+    elif isinstance(method, SampledData):
         sl = _sampled_impl(loop, plant, method.period, d, method.filter_method)
         Y, finite = _lifted_outputs(_check_delay(loop, method.period, d, sl.A), sl.B, sl.C, sl.D, W)
         failed_at, Y = _first_bad(finite, Y, W, error_bound)
@@ -903,6 +917,33 @@ def _lifted_outputs(A, B, C, D, W, K: int = _CHUNK):
     Y = jnp.einsum("jon,cn->cjo", obs, S) + (Wp.reshape(nb, K * m) @ T.T).reshape(nb, K, p)
     finite = jnp.repeat(jnp.all(jnp.isfinite(S), axis=1), K)[:n]
     return Y.reshape(nb * K, p)[:n], finite
+
+
+def _sampled_moving(loop, drive, method: SampledData, d, W, pos0, r_mid, n_modes, n_el):
+    r"""The sampled-data loop with the plant following the table: a time-varying recursion
+
+        s_{k+1} = A_d(Y_{k+1/2}) s_k + B_d(Y_{k+1/2}) w_k,   y_k = C_d(Y_k) s_k + D_d(Y_k) w_k,
+
+    the loop of :func:`sampled_closed_loop` rebuilt around the FE model at Y, projected on the
+    modes at Y₀ (as for :class:`PadeODE`), over step k at the midpoint position
+    Y_{k+1/2} = Y₀ + r(t_k + T/2) (exponential midpoint rule, second order in the plant's
+    variation over a step) and at Y_k = Y₀ + r(t_k) for the outputs.  A ``lax.scan`` of one
+    step per sample (no lifting: the matrices change every sample)."""
+    V = _moving_basis(drive, pos0, n_el, n_modes)
+    plant = _MovingPlant(drive, V, n_el)
+
+    def system(y):
+        return _sampled_impl(loop, plant.at(y), method.period, d, method.filter_method)
+
+    s0 = _check_delay(loop, method.period, d, jnp.zeros(system(pos0).A.shape[0]))
+
+    def step(s, inputs):
+        w, y_k, y_mid = inputs
+        out, tr = system(y_k), system(y_mid)
+        return tr.A @ s + tr.B @ w, (out.C @ s + out.D @ w, jnp.all(jnp.isfinite(s)))
+
+    _, (Y, finite) = jax.lax.scan(step, s0, (W, pos0 + W[:, 0], pos0 + r_mid))
+    return Y, finite
 
 
 def _first_bad(finite, Y, W, bound):
