@@ -16,7 +16,7 @@ $(STAMP): pyproject.toml
 install: $(STAMP)
 
 demo: $(STAMP)
-	$(VENV)/bin/fdjax demo --out $(OUT)
+	$(VENV)/bin/fdjax reproduce --quick --out $(OUT)
 
 test: $(STAMP)
 	$(PY) -m pytest -q

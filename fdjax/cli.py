@@ -1,6 +1,9 @@
 """The ``fdjax`` command line.
 
-    fdjax demo    [--out DIR]   3M2S and reference-drive numbers, and the figures
+    fdjax reproduce [--out DIR] [--quick]
+                                the whole chain on the reference drive: the figures and
+                                summary.json (the numbers the README quotes)
+    fdjax demo    [--out DIR]   ``reproduce --quick`` (what ``make demo`` runs)
     fdjax figures [--out DIR]   the paper's figures so far (Figs. 2, 3, 5, 10-12, 14, 16, 17)
     fdjax modes   [--out DIR] [--positions N] [--n-modes N] [--source fit|model]
                                 modes of h21 over the travel: table, CSV and JSON
@@ -13,6 +16,7 @@ import csv
 import json
 import os
 import sys
+import time
 
 import numpy as np
 
@@ -159,21 +163,110 @@ def simulation_figures(out: str) -> dict:
     return {k: float(v.rms_error()) for k, v in {**pid_runs, **mcm_runs}.items()}
 
 
-def demo(out: str) -> None:
-    """The 3M2S and the reference drive: numbers printed, figures written to ``out``."""
+# Table 1's tolerances (issue 3): frequency ±3 %, damping ±25 %, resonant phase ±15°.
+TABLE_1_TOLERANCE = {"frequency": 0.03, "damping": 0.25, "phase_deg": 15.0}
+
+
+def table_1_comparison(drive) -> dict:
+    """The reference drive's five lowest flexible modes of h21 at 115 mm against Table 1."""
+    import fdjax
+
+    T = fdjax.TABLE_1
+    m = fdjax.drive_modes(drive, fdjax.TABLE_1_POSITION_M, n_modes=6)
+    rows, met = [], 0
+    for k in range(5):
+        f, z, ph = (float(np.asarray(x)[k]) for x in (m.frequency_hz, m.damping, m.phase_deg))
+        tf, tz, tph = (float(np.asarray(x)[k]) for x in (T.frequency_hz, T.damping, T.phase_deg))
+        d_phase = (ph - tph + 180.0) % 360.0 - 180.0
+        ok = {
+            "frequency": abs(f / tf - 1) <= TABLE_1_TOLERANCE["frequency"],
+            "damping": abs(z / tz - 1) <= TABLE_1_TOLERANCE["damping"],
+            "phase": abs(d_phase) <= TABLE_1_TOLERANCE["phase_deg"],
+        }
+        met += sum(ok.values())
+        rows.append({"mode": k + 1, "frequency_hz": f, "table_1_frequency_hz": tf,
+                     "damping": z, "table_1_damping": tz, "phase_deg": ph,
+                     "table_1_phase_deg": tph, "phase_difference_deg": d_phase, "met": ok})
+    return {"position_m": float(fdjax.TABLE_1_POSITION_M), "tolerance": TABLE_1_TOLERANCE,
+            "modes": rows, "targets_met": met, "targets": 15}
+
+
+def loop_summary(pos: np.ndarray, f: np.ndarray, H: np.ndarray) -> dict:
+    """Margins of the default double loop over the travel, on the exact FRF."""
+    import fdjax
+
+    m = fdjax.loop_margins(fdjax.DoubleLoop(), H, f)
+
+    def margins(x):
+        return {"gain_margin": np.asarray(x.gain_margin).tolist(),
+                "phase_margin_deg": np.asarray(x.phase_margin_deg).tolist(),
+                "modulus_margin": np.asarray(x.modulus_margin).tolist(),
+                "gain_crossover_hz": np.asarray(x.gain_crossover_hz).tolist()}
+
+    return {"positions_m": pos.tolist(), "inner": margins(m.inner), "outer": margins(m.outer)}
+
+
+def discretisation_summary() -> dict:
+    """The hand-set MCM at the servo rate: largest relative error below Nyquist/4."""
+    mcm = hand_set_mcm()
+    f = np.linspace(0.5, 1 / (8 * SERVO_PERIOD_S), 4000)
+    gc = np.asarray(mcm.frf(f))
+    err = {m: float(np.max(np.abs(np.asarray(mcm.discretize(SERVO_PERIOD_S, m).frf(f)) - gc)
+                           / np.abs(gc))) for m in ("fitted", "tustin")}
+    return {"servo_rate_hz": 1 / SERVO_PERIOD_S, "band_hz": [0.5, float(f[-1])],
+            "max_relative_error": err}
+
+
+def reproduce(out: str, quick: bool = False) -> dict:
+    """The whole chain on the reference drive: every figure so far, and ``summary.json``.
+
+    ``quick`` sweeps 13 table positions instead of 61 (Figs. 10-12, 14 and the margins)."""
+    import fdjax
+
+    start = time.perf_counter()
     os.makedirs(out, exist_ok=True)
     fn = three_mass_figures(out)
     print("3M2S (paper Sec. 2): natural frequencies " + ", ".join(f"{x:.1f} Hz" for x in fn[1:]))
-    pos, f, H = drive_figures(out)
+    drive = fdjax.reference_drive()
+    pos, f, H = drive_figures(out, n_positions=13 if quick else 61)
+    table_1 = table_1_comparison(drive)
+    print(f"Reference drive vs Table 1 at 115 mm: {table_1['targets_met']} of 15 targets met "
+          "(frequency ±3 %, damping ±25 %, phase ±15°)")
     loop_figures(out, pos, f, H)
+    loop = loop_summary(pos, f, H)
+    print("Default double loop over the travel: speed loop GM ≥ "
+          f"{min(loop['inner']['gain_margin']):.2f}, PM ≥ "
+          f"{min(loop['inner']['phase_margin_deg']):.1f}°; position loop GM ≥ "
+          f"{min(loop['outer']['gain_margin']):.2f}, PM ≥ "
+          f"{min(loop['outer']['phase_margin_deg']):.1f}°")
     rms = simulation_figures(out)
     print(f"Reciprocating motion at {FIG16_POSITION_M * 1e3:.0f} mm, RMS scale error (µm): "
           + ", ".join(f"{k} {v * 1e6:.3g}" for k, v in rms.items()))
+    disc = discretisation_summary()
+    err = disc["max_relative_error"]
+    print(f"Hand-set MCM at 8 kHz, error below Nyquist/4: fitted {err['fitted'] * 100:.2f} %, "
+          f"Tustin {err['tustin'] * 100:.1f} %")
     print("Reference drive, peaks of |h21| = |x2/T1| (Hz):")
     for p in (0, len(pos) // 2, len(pos) - 1):
         pk = _peaks(f, np.abs(H[p, :, 1, 0]), 20.0, 3000.0)
         print(f"  Y_table = {pos[p] * 1e3:5.0f} mm: " + ", ".join(f"{x:7.1f}" for x in pk))
-    print(f"figures written to {out}/")
+    summary = {
+        "fdjax_version": fdjax.__version__,
+        "quick": quick,
+        "three_mass": {"natural_frequencies_hz": fn[1:].tolist()},
+        "table_1": table_1,
+        "double_loop": loop,
+        "tracking": {"position_m": FIG16_POSITION_M, "servo_rate_hz": 1 / SERVO_PERIOD_S,
+                     "motion": "reciprocating, 5 mm, 0.1 m/s, 2 m/s², 200 m/s³, 2 cycles",
+                     "rms_scale_error_m": rms},
+        "mcm_discretisation": disc,
+        "figures": sorted(n for n in os.listdir(out) if n.endswith(".png")),
+        "seconds": time.perf_counter() - start,
+    }
+    with open(os.path.join(out, "summary.json"), "w") as fh:
+        json.dump(summary, fh, indent=1)
+    print(f"figures and summary.json written to {out}/ in {summary['seconds']:.0f} s")
+    return summary
 
 
 def modes(out: str | None, n_positions: int, n_modes: int, source: str) -> dict:
@@ -217,7 +310,10 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="fdjax", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
-    p = sub.add_parser("demo", help="3M2S and reference-drive numbers with figures")
+    p = sub.add_parser("reproduce", help="the whole chain: figures and summary.json")
+    p.add_argument("--out", default="build/reproduce", help="output folder")
+    p.add_argument("--quick", action="store_true", help="13 table positions instead of 61")
+    p = sub.add_parser("demo", help="reproduce --quick (what make demo runs)")
     p.add_argument("--out", default="build/demo", help="output folder (default build/demo)")
     p = sub.add_parser("figures", help="the paper's dynamics figures")
     p.add_argument("--out", default="build/figures", help="output folder")
@@ -228,8 +324,10 @@ def main(argv=None) -> int:
     p.add_argument("--source", choices=("fit", "model"), default="fit",
                    help="identify from the FRF (fit) or eigen-analysis of the twin (model)")
     args = parser.parse_args(argv)
-    if args.command == "demo":
-        demo(args.out)
+    if args.command == "reproduce":
+        reproduce(args.out, quick=args.quick)
+    elif args.command == "demo":
+        reproduce(args.out, quick=True)
     elif args.command == "figures":
         os.makedirs(args.out, exist_ok=True)
         three_mass_figures(args.out)
