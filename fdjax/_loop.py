@@ -499,30 +499,46 @@ class _Form(eqx.Module):
         return _Form(self.row * k, self.t * k)
 
 
-class _LinearForms:
-    """Bookkeeping of the closed-loop states ``[plant, *controller blocks]`` and inputs."""
+class _Layout:
+    """Named state blocks laid out in one vector ``[blocks…, inputs]``, and rows over it (a
+    linear signal of the loop is a row: its coefficients on every state and input)."""
 
-    def __init__(self, plant: StateSpace, blocks: dict[str, int]):
-        self.plant = plant
-        self.sizes = {"plant": plant.A.shape[0], **blocks}
-        self.offsets = {}
+    def __init__(self, sizes: dict[str, int], inputs: tuple[str, ...] = CLOSED_LOOP_INPUTS):
+        self.sizes, self.inputs, self.offsets = dict(sizes), inputs, {}
         k = 0
         for name, size in self.sizes.items():
             self.offsets[name] = k
             k += size
         self.n = k
-        self.width = k + len(CLOSED_LOOP_INPUTS)
+        self.width = k + len(inputs)
 
-    def row(self, **parts) -> _Form:
+    def vector(self, **parts) -> Array:
+        """The row with ``values`` at block ``name`` for each ``name=values`` ("inputs": the
+        input slots)."""
         r = jnp.zeros(self.width, jnp.float64)
         for name, values in parts.items():
+            values = jnp.atleast_1d(values)
             o = self.offsets[name] if name != "inputs" else self.n
             r = r.at[o : o + values.shape[0]].add(values)
-        return _Form(r, jnp.zeros((), jnp.float64))
+        return r
+
+    def unit_input(self, name: str) -> Array:
+        """The row of input ``name`` alone."""
+        return jnp.zeros(self.width, jnp.float64).at[self.n + self.inputs.index(name)].set(1.0)
+
+
+class _LinearForms(_Layout):
+    """Bookkeeping of the closed-loop states ``[plant, *controller blocks]`` and inputs."""
+
+    def __init__(self, plant: StateSpace, blocks: dict[str, int]):
+        super().__init__({"plant": plant.A.shape[0], **blocks})
+        self.plant = plant
+
+    def row(self, **parts) -> _Form:
+        return _Form(self.vector(**parts), jnp.zeros((), jnp.float64))
 
     def inp(self, name: str) -> _Form:
-        k = CLOSED_LOOP_INPUTS.index(name)
-        return self.row(inputs=jnp.zeros(len(CLOSED_LOOP_INPUTS)).at[k].set(1.0))
+        return _Form(self.unit_input(name), jnp.zeros((), jnp.float64))
 
     def plant_out(self, i: int) -> _Form:
         """Plant output i (θ1, x2, x3): C_i x + D_i,F3 F3 + D_i,T1 T1."""

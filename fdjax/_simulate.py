@@ -61,6 +61,7 @@ from ._loop import (
     DoubleLoop,
     PIDLoop,
     _closed_loop_impl,
+    _Layout,
     _pade_ss,
 )
 from ._statespace import (
@@ -87,8 +88,6 @@ __all__ = [
 
 SIMULATION_OUTPUTS = ("theta1", "x2", "x3", "T1")
 """Rows of :attr:`SampledLoop.C`: motor angle (rad), scale and tool positions (m), torque (N·m)."""
-
-_INPUTS = ("r", "r_dot", "r_ddot", "F3")
 
 
 class SimulationResult(eqx.Enumeration):
@@ -387,28 +386,6 @@ def _tustin(A, B, C, D, h):
     return Ad, Bd, Cd, Dd
 
 
-class _Rows:
-    """Signals as rows over [state blocks…, inputs w] of a discrete loop."""
-
-    def __init__(self, sizes: dict[str, int]):
-        self.offsets, k = {}, 0
-        for name, size in sizes.items():
-            self.offsets[name] = k
-            k += size
-        self.sizes, self.n, self.width = sizes, k, k + len(_INPUTS)
-
-    def row(self, **parts):
-        r = jnp.zeros(self.width)
-        for name, values in parts.items():
-            values = jnp.atleast_1d(values)
-            o = self.offsets[name] if name != "w" else self.n
-            r = r.at[o : o + values.shape[0]].add(values)
-        return r
-
-    def inp(self, name: str):
-        return jnp.zeros(self.width).at[self.n + _INPUTS.index(name)].set(1.0)
-
-
 def _delay_samples(loop: AbstractLoop, method: SampledData) -> int:
     """d = τ/T, checked to be a whole number ≥ 1 (eagerly when τ is concrete; under jit, where
     ``SampledData(delay_samples=...)`` must give it, by the ``eqx.error_if`` of
@@ -466,25 +443,25 @@ def _sampled_impl(
         raise TypeError(f"sampled-data simulation of {type(loop).__name__} is not implemented")
     cA, cB, cC, cD = _tustin(Ac, Bc, Cc, Dc, h)
     nc, nf = cA.shape[0], fA.shape[0]
-    R = _Rows({"x": npl, "th": 1, "c": nc, "f": nf, "b": d})
-    T1 = R.row(b=jnp.zeros(d).at[d - 1].set(loop.k_motor))
-    F3 = R.inp("F3")
+    R = _Layout({"x": npl, "th": 1, "c": nc, "f": nf, "b": d})
+    T1 = R.vector(b=jnp.zeros(d).at[d - 1].set(loop.k_motor))
+    F3 = R.unit_input("F3")
 
     def out(i):
-        return R.row(x=plant.C[i]) + plant.D[i, 0] * T1 + plant.D[i, 1] * F3
+        return R.vector(x=plant.C[i]) + plant.D[i, 0] * T1 + plant.D[i, 1] * F3
 
     theta, x2 = out(0), out(1)
     if isinstance(loop, DoubleLoop):
-        v_m = (theta - R.row(th=jnp.ones(1))) * (loop.i_sc / h)
-        e = (R.inp("r") - x2) * loop.kp + R.inp("r_dot") * loop.k_ffv - v_m
+        v_m = (theta - R.vector(th=jnp.ones(1))) * (loop.i_sc / h)
+        e = (R.unit_input("r") - x2) * loop.kp + R.unit_input("r_dot") * loop.k_ffv - v_m
     else:
-        e = R.inp("r") - x2
-    u_c = R.row(c=cC[0]) + cD[0, 0] * e
-    u_f = R.row(f=fC) + fD * u_c if nf else fD * u_c
+        e = R.unit_input("r") - x2
+    u_c = R.vector(c=cC[0]) + cD[0, 0] * e
+    u_f = R.vector(f=fC) + fD * u_c if nf else fD * u_c
     if isinstance(loop, DoubleLoop):
-        u = u_f + R.inp("r_ddot") * loop.k_ffa
+        u = u_f + R.unit_input("r_ddot") * loop.k_ffa
     else:
-        u = u_f + R.inp("r_dot") * loop.k_ffv + R.inp("r_ddot") * loop.k_ffa
+        u = u_f + R.unit_input("r_dot") * loop.k_ffv + R.unit_input("r_ddot") * loop.k_ffa
     rows = [
         jnp.concatenate([Phi, jnp.zeros((npl, R.width - npl))], 1)
         + Gam[:, :1] * T1[None, :]
