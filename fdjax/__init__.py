@@ -11,6 +11,16 @@ jax.config.update("jax_enable_x64", True)
 
 __version__ = "0.1.0"
 
+from ._analysis import (
+    LoopMargins as LoopMargins,
+    OpenLoop as OpenLoop,
+    Stability as Stability,
+    check_stability as check_stability,
+    closed_loop as closed_loop,
+    loop_margins as loop_margins,
+    open_loop as open_loop,
+    stability_margins as stability_margins,
+)
 from ._calibrate import (
     TABLE_1 as TABLE_1,
     TABLE_1_POSITION_M as TABLE_1_POSITION_M,
@@ -20,6 +30,24 @@ from ._calibrate import (
     drive_modes as drive_modes,
     track_drive_modes as track_drive_modes,
     update_model as update_model,
+)
+from ._control import (
+    CLOSED_LOOP_INPUTS as CLOSED_LOOP_INPUTS,
+    CLOSED_LOOP_OUTPUTS as CLOSED_LOOP_OUTPUTS,
+    DEFAULT_PADE_ORDER as DEFAULT_PADE_ORDER,
+    LAW_SIGNALS as LAW_SIGNALS,
+    PI as PI,
+    PID as PID,
+    AbstractBlock as AbstractBlock,
+    AbstractController as AbstractController,
+    DoubleLoop as DoubleLoop,
+    FilterBlock as FilterBlock,
+    Law as Law,
+    Margins as Margins,
+    Path as Path,
+    PIDLoop as PIDLoop,
+    Servo as Servo,
+    pade as pade,
 )
 from ._coupling import (
     couple as couple,
@@ -35,29 +63,10 @@ from ._filters import (
     MCM as MCM,
     AbstractFilter as AbstractFilter,
     DiscreteFilter as DiscreteFilter,
-    FilterStateSpace as FilterStateSpace,
     NotchFilter as NotchFilter,
     PeakFilter as PeakFilter,
 )
-from ._loop import (
-    CLOSED_LOOP_INPUTS as CLOSED_LOOP_INPUTS,
-    CLOSED_LOOP_OUTPUTS as CLOSED_LOOP_OUTPUTS,
-    DEFAULT_PADE_ORDER as DEFAULT_PADE_ORDER,
-    AbstractLoop as AbstractLoop,
-    ClosedLoop as ClosedLoop,
-    DoubleLoop as DoubleLoop,
-    LoopMargins as LoopMargins,
-    Margins as Margins,
-    OpenLoop as OpenLoop,
-    PIDLoop as PIDLoop,
-    Stability as Stability,
-    check_stability as check_stability,
-    closed_loop as closed_loop,
-    loop_margins as loop_margins,
-    open_loop as open_loop,
-    pade as pade,
-    stability_margins as stability_margins,
-)
+from ._lti import LTI as LTI
 from ._lumped import (
     LumpedModel as LumpedModel,
     chain_model as chain_model,
@@ -69,16 +78,16 @@ from ._modal import (
     identify_modes_batched as identify_modes_batched,
     track_modes as track_modes,
 )
+from ._results import RESULTS as RESULTS
 from ._rods import Rod as Rod, Support as Support, rod_receptance as rod_receptance
-from ._simulate import (
+from ._simulation import (
     SIMULATION_OUTPUTS as SIMULATION_OUTPUTS,
+    AbstractLoopModel as AbstractLoopModel,
+    Continuous as Continuous,
     ExponentialFOH as ExponentialFOH,
     PadeODE as PadeODE,
     SampledData as SampledData,
-    SampledLoop as SampledLoop,
     Simulation as Simulation,
-    SimulationResult as SimulationResult,
-    sampled_closed_loop as sampled_closed_loop,
     simulate as simulate,
 )
 from ._statespace import (

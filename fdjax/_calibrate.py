@@ -38,7 +38,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from . import _checks
 from ._drive import INPUTS, OUTPUTS, BallScrewDrive
-from ._statespace import DEFAULT_ELEMENTS, fe_matrices
+from ._statespace import DEFAULT_ELEMENTS, _assemble, _check_inputs, _check_time_domain
 
 __all__ = [
     "ModalData", "DriveModes", "ModelUpdate", "drive_modes", "track_drive_modes",
@@ -46,16 +46,29 @@ __all__ = [
 ]
 
 
-def _vec(x) -> Array:
-    return jnp.atleast_1d(jnp.asarray(x, dtype=jnp.float64))
+def _vector_field(where: str, test):
+    """A float64 1-D field checked in its converter (the guarded value is the stored leaf)."""
+
+    def convert(x):
+        v = jnp.atleast_1d(_checks.real_array(x, where))
+        if v.ndim != 1:
+            raise ValueError(f"`{where}` must be a scalar or 1-D, got shape {v.shape}")
+        return test(v, where)
+
+    return eqx.field(converter=convert)
 
 
 class ModalData(eqx.Module):
-    """Target modal data of one FRF: frequency (Hz), damping ratio, resonant phase (°)."""
+    """Target modal data of one FRF: frequency (Hz), damping ratio, resonant phase (°).
 
-    frequency_hz: Float[Array, " n"] = eqx.field(converter=_vec)
-    damping: Float[Array, " n"] = eqx.field(converter=_vec)
-    phase_deg: Float[Array, " n"] = eqx.field(converter=_vec)
+    Frequencies and damping ratios must be finite and positive (the residuals take their
+    logarithms), phases finite.
+    """
+
+    frequency_hz: Float[Array, " n"] = _vector_field("ModalData(frequency_hz=...)",
+                                                     _checks.positive)
+    damping: Float[Array, " n"] = _vector_field("ModalData(damping=...)", _checks.positive)
+    phase_deg: Float[Array, " n"] = _vector_field("ModalData(phase_deg=...)", _checks.finite)
 
     def __check_init__(self):
         n = self.frequency_hz.shape
@@ -100,14 +113,15 @@ class DriveModes(eqx.Module):
     shapes: Array
 
 
-def _wrap_deg(phi):
-    """Wrap degrees to (−360, 0]."""
-    return phi - 360.0 * jnp.ceil(phi / 360.0)
+def _wrap_deg(phi, upper: float = 0.0):
+    """Wrap degrees to (upper − 360°, upper]: (−360°, 0] for resonant phases, ``upper=180``
+    for phase errors in (−180°, 180]."""
+    return phi - 360.0 * jnp.ceil((phi - upper) / 360.0)
 
 
-def _channel(name, names, arg):
-    if name not in names:
-        raise ValueError(f"`drive_modes({arg}=...)` must be one of {names}, got {name!r}")
+def _channel(name, names, fn, arg):
+    if not isinstance(name, str) or name not in names:
+        raise ValueError(f"`{fn}({arg}=...)` must be one of {names}, got {name!r}")
     return names.index(name)
 
 
@@ -168,34 +182,37 @@ def drive_modes(
     entry is h21 = x2/T1, the paper's Table 1 and Fig. 12.  Differentiable; a 1-D
     ``position_m`` runs one compiled loop over the positions (returned with a leading axis).
     """
-    out = _channel(output, OUTPUTS, "output")
-    inp = _channel(input, INPUTS, "input")
-    pos = jnp.asarray(position_m, dtype=jnp.float64)
+    fn = "drive_modes"
+    out = _channel(output, OUTPUTS, fn, "output")
+    inp = _channel(input, INPUTS, fn, "input")
+    n_el = _checks.static_int(n_elements, f"{fn}(n_elements=...)", 1)
+    # at most N − 1 oscillatory pole pairs for N = 2·n_elements + 5 DOFs (the rigid body
+    # gives two real poles)
+    n_keep = _checks.static_int(n_modes, f"{fn}(n_modes=...)", 1, 2 * n_el + 4)
+    pos = _checks.real_array(position_m, f"{fn}(position_m=...)")
     if pos.ndim == 0:
-        fe = fe_matrices(drive, pos, n_elements=n_elements)
-        return _modes_jit(fe, out, inp, int(n_modes))
+        drive, pos = _check_inputs(drive, pos, fn)
+        return _modes_jit(drive, pos, out, inp, n_keep, n_el)
     if pos.ndim != 1:
-        raise ValueError(f"`drive_modes(position_m=...)` must be a scalar or 1-D, got {pos.shape}")
-    lo, hi = drive.travel_m
-    pos = _checks.check(pos, lambda p: (p >= lo) & (p <= hi), "drive_modes(position_m=...)",
-                        f"inside the travel [{lo:.6g}, {hi:.6g}] m")
-    return _modes_batch(drive, pos, out, inp, int(n_modes), int(n_elements))
+        raise ValueError(f"`{fn}(position_m=...)` must be a scalar or 1-D, got {pos.shape}")
+    drive = _check_time_domain(drive, fn)
+    pos = drive._check_positions(pos, fn)
+    return _modes_batch_jit(drive, pos, out, inp, n_keep, n_el)
 
 
-@eqx.filter_jit
-def _modes_jit(fe, out, inp, n_modes):
-    return _modes_from_fe(fe, out, inp, n_modes)
+def _modes_at(drive, pos, out, inp, n_modes, n_elements):
+    return _modes_from_fe(_assemble(drive, pos, n_elements, True), out, inp, n_modes)
 
 
-@eqx.filter_jit
 def _modes_batch(drive, pos, out, inp, n_modes, n_elements):
-    from ._statespace import _assemble
-
     # lax.map, not vmap: a batched non-symmetric eig on the CPU has been seen to dead-lock
     # (XLA:CPU, jax 0.10); one eig per position inside a compiled loop is as fast here.
-    return jax.lax.map(
-        lambda p: _modes_from_fe(_assemble(drive, p, n_elements, True), out, inp, n_modes), pos
-    )
+    return jax.lax.map(lambda p: _modes_at(drive, p, out, inp, n_modes, n_elements), pos)
+
+
+# Positions reach these as arrays (a Python float would be static: one compile per value).
+_modes_jit = eqx.filter_jit(_modes_at)
+_modes_batch_jit = eqx.filter_jit(_modes_batch)
 
 
 def track_drive_modes(
@@ -208,6 +225,18 @@ def track_drive_modes(
     """
     from ._modal import _track
 
+    if not isinstance(modes, DriveModes):
+        raise ValueError(
+            f"`track_drive_modes(modes=...)` must be a DriveModes, got {type(modes).__name__}"
+        )
+    freq_tol = _checks.positive(
+        _checks.real_scalar(freq_tol, "track_drive_modes(freq_tol=...)"),
+        "track_drive_modes(freq_tol=...)",
+    )
+    mac_tol = _checks.positive(
+        _checks.real_scalar(mac_tol, "track_drive_modes(mac_tol=...)"),
+        "track_drive_modes(mac_tol=...)",
+    )
     if modes.frequency_hz.ndim != 2:
         raise ValueError(
             "`track_drive_modes(modes=...)` must be a batch over positions, got frequency_hz "
@@ -260,10 +289,6 @@ class ModelUpdate(eqx.Module):
         ])
 
 
-def _wrap180(phi):
-    return phi - 360.0 * jnp.round(phi / 360.0)
-
-
 def _pair(modes: DriveModes, target: ModalData, visibility: float) -> Array:
     """Greedy pairing: each target (in order) takes the nearest visible, unused model mode."""
     n_m = modes.frequency_hz.shape[-1]
@@ -291,9 +316,78 @@ def _to_unit(value, lo, hi, log):
     return np.log(x / (1 - x))
 
 
-def _from_unit(u, lo, hi, log):
+def _from_unit(u, lo, hi, log: bool):
     s = jax.nn.sigmoid(u)
-    return jnp.exp(np.log(lo) + s * (np.log(hi) - np.log(lo))) if log else lo + s * (hi - lo)
+    return jnp.exp(jnp.log(lo) + s * (jnp.log(hi) - jnp.log(lo))) if log else lo + s * (hi - lo)
+
+
+class _Fit(eqx.Module):
+    """The static structure of a model update (the data travel as arrays in ``_FitData``)."""
+
+    paths: tuple[str, ...] = eqx.field(static=True)
+    log: tuple[bool, ...] = eqx.field(static=True)
+    out: int = eqx.field(static=True)
+    inp: int = eqx.field(static=True)
+    n_modes: int = eqx.field(static=True)
+    n_elements: int = eqx.field(static=True)
+
+
+class _FitData(eqx.Module):
+    """Everything the residual reads, as arrays: passed through optimistix's ``args``, so a
+    new data set of the same shapes runs the compiled program again (a closure would not)."""
+
+    drive: BallScrewDrive
+    target: ModalData
+    position_m: Array
+    lo: Array
+    hi: Array
+    tolerances: Array
+    visibility: Array
+    fit: _Fit
+
+
+def _build(u, data: _FitData) -> BallScrewDrive:
+    fit = data.fit
+    values = [_from_unit(u[k], data.lo[k], data.hi[k], fit.log[k]) for k in range(len(fit.paths))]
+    getters = [_getter(p) for p in fit.paths]
+    return eqx.tree_at(lambda d: [g(d) for g in getters], data.drive, values)
+
+
+def _model_modes(drive, data: _FitData) -> DriveModes:
+    f = data.fit
+    return _modes_at(drive, data.position_m, f.out, f.inp, f.n_modes, f.n_elements)
+
+
+def _residuals(modes: DriveModes, target: ModalData, tolerances) -> Array:
+    """Normalised residuals (3, n): ln(f/f*)/tol_f, ln(ζ/ζ*)/tol_ζ, wrap(φ − φ*)/tol_φ."""
+    tf, tz, tp = tolerances[0], tolerances[1], tolerances[2]
+    return jnp.stack([
+        jnp.log(modes.frequency_hz / target.frequency_hz) / tf,
+        jnp.log(modes.damping / target.damping) / tz,
+        _wrap_deg(modes.phase_deg - target.phase_deg, 180.0) / tp,
+    ])
+
+
+def _update_residual(u, data: _FitData):
+    m = _model_modes(_build(u, data), data)
+    k = _pair(m, data.target, data.visibility)
+    paired = jax.tree_util.tree_map(lambda x: x[k], m)
+    return _residuals(paired, data.target, data.tolerances).reshape(-1)
+
+
+def _update(u0, data: _FitData, solver, max_steps: int):
+    sol = optx.least_squares(
+        _update_residual, solver, u0, args=data, max_steps=max_steps, throw=False
+    )
+    fitted = _build(sol.value, data)
+    m = _model_modes(fitted, data)
+    paired = jax.tree_util.tree_map(lambda x: x[_pair(m, data.target, data.visibility)], m)
+    r = _residuals(paired, data.target, data.tolerances)
+    return fitted, paired, r, sol.stats["num_steps"], sol.result == optx.RESULTS.successful
+
+
+_update_jit = eqx.filter_jit(_update)
+_DEFAULT_SOLVER = optx.LevenbergMarquardt(rtol=1e-6, atol=1e-6)
 
 
 def update_model(
@@ -314,7 +408,9 @@ def update_model(
     r"""Fit bounded physical parameters so the model's modes match measured modal data.
 
     Minimises ``Σ r²`` with the normalised residuals of the module docstring by
-    Levenberg–Marquardt, differentiating through the eigen-analysis of the twin.
+    Levenberg–Marquardt, differentiating through the eigen-analysis of the twin.  The data
+    (drive, target, position, bounds, tolerances) reach the compiled solve as arrays through
+    optimistix's ``args``: a second call with new values of the same shapes compiles nothing.
 
     Args:
         drive: the starting model.
@@ -324,65 +420,99 @@ def update_model(
             searched in log space; a bound ≤ 0 makes the search linear.
         position_m: the table position at which the data were measured (m).
         tolerances: (relative frequency, relative damping, phase in degrees) used to normalise
-            the residuals.
+            the residuals; all positive.
         visibility: a model mode can be paired only if its prominence (its share of the FRF at
-            its own natural frequency) is at least this: modes a measurement could not see
-            are not matched.
+            its own natural frequency) is at least this (in [0, 1)): modes a measurement could
+            not see are not matched.
+        n_modes: model modes to pair from (static), at least the number of targets.
+        n_elements: screw elements of the twin (static).
+        max_steps: Levenberg–Marquardt steps (static, ≥ 0; 0 only evaluates the residuals).
         solver: an optimistix least-squares solver (default Levenberg–Marquardt, rtol 1e-6).
 
     Returns:
         A :class:`ModelUpdate` with the fitted drive and the residuals mode by mode.
     """
-    if not parameters:
-        raise ValueError("`update_model(parameters=...)` must name at least one parameter")
-    paths = list(parameters)
-    specs = []
+    fn = "update_model"
+    if not isinstance(target, ModalData):
+        raise ValueError(f"`{fn}(target=...)` must be a ModalData, got {type(target).__name__}")
+    drive, pos = _check_inputs(drive, position_m, fn)
+    if not isinstance(parameters, Mapping) or not parameters:
+        raise ValueError(f"`{fn}(parameters=...)` must name at least one parameter")
+    paths = tuple(parameters)
+    bounds = []
     for p in paths:
-        lo, hi = (float(v) for v in parameters[p])
-        if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
+        try:
+            value = _getter(p)(drive)
+        except (AttributeError, TypeError):
+            raise ValueError(f"`{fn}(parameters=...)` has no drive parameter {p!r}") from None
+        if not isinstance(value, jax.Array) or value.ndim != 0:
             raise ValueError(
-                f"`update_model(parameters=...)` bounds for {p!r} must be finite with lo < hi, "
-                f"got ({lo}, {hi})"
+                f"`{fn}(parameters=...)`: {p!r} must be a scalar physical parameter of the "
+                f"drive, got {type(value).__name__}"
+            )
+        if p == "screw.loss_factor":
+            raise ValueError(
+                f"`{fn}(parameters=...)`: 'screw.loss_factor' enters no time-domain model "
+                "(fit 'screw.retardation')"
             )
         try:
-            _getter(p)(drive)
-        except AttributeError:
+            lo, hi = (_checks.concrete_float(v, f"{fn}(parameters=...)") for v in parameters[p])
+        except (TypeError, ValueError):
             raise ValueError(
-                f"`update_model(parameters=...)` has no drive parameter {p!r}"
+                f"`{fn}(parameters=...)` bounds for {p!r} must be a (lo, hi) pair of numbers, "
+                f"got {parameters[p]!r}"
             ) from None
-        specs.append((lo, hi, lo > 0))
-    out, inp = _channel(output, OUTPUTS, "output"), _channel(input, INPUTS, "input")
+        if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
+            raise ValueError(
+                f"`{fn}(parameters=...)` bounds for {p!r} must be finite with lo < hi, "
+                f"got ({lo}, {hi})"
+            )
+        bounds.append((lo, hi))
+    tol = np.asarray(tolerances, dtype=np.float64) if np.ndim(tolerances) == 1 else None
+    if tol is None or tol.shape != (3,):
+        raise ValueError(
+            f"`{fn}(tolerances=...)` must be (frequency, damping, phase_deg), got {tolerances!r}"
+        )
+    tol = _checks.positive(jnp.asarray(tol), f"{fn}(tolerances=...)")
+    vis = _checks.check(
+        _checks.real_scalar(visibility, f"{fn}(visibility=...)"),
+        lambda v: (v >= 0) & (v < 1), f"{fn}(visibility=...)", "in [0, 1)",
+    )
+    n_el = _checks.static_int(n_elements, f"{fn}(n_elements=...)", 1)
+    n_targets = target.frequency_hz.shape[0]
+    n_keep = _checks.static_int(n_modes, f"{fn}(n_modes=...)", n_targets, 2 * n_el + 4)
+    max_steps = _checks.static_int(max_steps, f"{fn}(max_steps=...)", 0)
+    if solver is None:
+        solver = _DEFAULT_SOLVER
+    elif not isinstance(solver, optx.AbstractLeastSquaresSolver | optx.AbstractMinimiser):
+        raise ValueError(
+            f"`{fn}(solver=...)` must be an optimistix least-squares solver, got "
+            f"{type(solver).__name__}"
+        )
+    log = tuple(lo > 0 for lo, _ in bounds)
     u0 = jnp.asarray([
-        _to_unit(float(np.clip(float(_getter(p)(drive)), lo, hi)), lo, hi, log)
-        for p, (lo, hi, log) in zip(paths, specs)
+        _to_unit(float(np.clip(float(_getter(p)(drive)), lo, hi)), lo, hi, lg)
+        for p, (lo, hi), lg in zip(paths, bounds, log)
     ])
-    tf, tz, tp = tolerances
-    pos = jnp.asarray(position_m, dtype=jnp.float64)
-
-    def build(u):
-        values = [_from_unit(u[k], *specs[k]) for k in range(len(paths))]
-        getters = [_getter(p) for p in paths]
-        return eqx.tree_at(lambda d: [g(d) for g in getters], drive, values)
-
-    def modes_of(d):
-        fe = fe_matrices(d, pos, n_elements=n_elements)
-        return _modes_from_fe(fe, out, inp, n_modes)
-
-    def residual(u, _):
-        m = modes_of(build(u))
-        k = _pair(m, target, visibility)
-        rf = jnp.log(m.frequency_hz[k] / target.frequency_hz) / tf
-        rz = jnp.log(m.damping[k] / target.damping) / tz
-        rp = _wrap180(m.phase_deg[k] - target.phase_deg) / tp
-        return jnp.concatenate([rf, rz, rp])
-
-    solver = solver or optx.LevenbergMarquardt(rtol=1e-6, atol=1e-6)
-    sol = optx.least_squares(residual, solver, u0, max_steps=max_steps, throw=False)
-    fitted = build(sol.value)
-    m = modes_of(fitted)
-    k = _pair(m, target, visibility)
-    paired = jax.tree_util.tree_map(lambda x: x[k], m)
-    r = residual(sol.value, None).reshape(3, -1)
+    fit = _Fit(
+        paths=paths,
+        log=log,
+        out=_channel(output, OUTPUTS, fn, "output"),
+        inp=_channel(input, INPUTS, fn, "input"),
+        n_modes=n_keep,
+        n_elements=n_el,
+    )
+    data = _FitData(
+        drive=drive,
+        target=target,
+        position_m=pos,
+        lo=jnp.asarray([b[0] for b in bounds]),
+        hi=jnp.asarray([b[1] for b in bounds]),
+        tolerances=tol,
+        visibility=vis,
+        fit=fit,
+    )
+    fitted, paired, r, steps, success = _update_jit(u0, data, solver, max_steps)
     return ModelUpdate(
         drive=fitted,
         modes=paired,
@@ -390,8 +520,8 @@ def update_model(
         residual=r,
         frequency_error=paired.frequency_hz / target.frequency_hz - 1,
         damping_error=paired.damping / target.damping - 1,
-        phase_error_deg=_wrap180(paired.phase_deg - target.phase_deg),
+        phase_error_deg=_wrap_deg(paired.phase_deg - target.phase_deg, 180.0),
         parameters={p: float(_getter(p)(fitted)) for p in paths},
-        steps=sol.stats["num_steps"],
-        success=sol.result == optx.RESULTS.successful,
+        steps=steps,
+        success=success,
     )

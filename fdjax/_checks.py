@@ -142,3 +142,82 @@ def nonnegative_field(where: str, **kwargs):
 def finite_field(where: str, **kwargs):
     """A float64 Module field that must be finite (see ``positive_field``)."""
     return _field(finite, where, **kwargs)
+
+
+# ------------------------------------------------------------------ casts and static facts
+def to_float(x) -> jax.Array:
+    """``x`` as a float64 array (no checks): the one real cast of the package."""
+    return jnp.asarray(x, dtype=jnp.float64)
+
+
+def to_complex(x) -> jax.Array:
+    """``x`` as a complex128 array (no checks): the one complex cast of the package."""
+    return jnp.asarray(x).astype(jnp.complex128)
+
+
+def real_array(value, where: str) -> jax.Array:
+    """A real array of any shape as float64; a complex dtype is a ``ValueError`` (shape fact)."""
+    arr = jnp.asarray(value)
+    if jnp.issubdtype(arr.dtype, jnp.complexfloating):
+        raise ValueError(f"`{where}` must be real, got dtype {arr.dtype}")
+    return arr.astype(jnp.float64)
+
+
+def real_scalar(value, where: str) -> jax.Array:
+    """A real scalar as a float64 0-d array (shape and dtype facts; the range is the caller's).
+
+    Jit-safe: a traced scalar stays traced, and a Python float becomes an array, so it is a
+    traced argument of a jitted function (not a static one, which would compile per value).
+    """
+    arr = jnp.asarray(value)
+    if arr.ndim != 0 or jnp.issubdtype(arr.dtype, jnp.complexfloating):
+        raise ValueError(f"`{where}` must be a real scalar, got {arr.dtype} of shape {arr.shape}")
+    return arr.astype(jnp.float64)
+
+
+def concrete_float(value, where: str) -> float:
+    """A concrete real scalar as a Python float, for quantities that fix a static structure
+    (e.g. segment durations computed in Python); a traced value is a ``ValueError``."""
+    if not is_concrete(value):
+        raise ValueError(
+            f"`{where}` must be a concrete number (it fixes the structure of what is built), "
+            "got a traced value; call it outside jit/vmap/grad"
+        )
+    arr = np.asarray(value)
+    if not np.isrealobj(arr):
+        raise ValueError(f"`{where}` must be real, got dtype {arr.dtype}")
+    if arr.shape != ():
+        raise ValueError(f"`{where}` must be a scalar, got shape {arr.shape}")
+    return float(arr)
+
+
+def static_int(value, where: str, lo: int, hi: int | None = None) -> int:
+    """A static count: a Python/NumPy integer (not a bool) in ``[lo, hi]``, as a Python int."""
+    ok = isinstance(value, int | np.integer) and not isinstance(value, bool)
+    if ok:
+        value = int(value)
+        ok = value >= lo and (hi is None or value <= hi)
+    if not ok:
+        rng = f"between {lo} and {hi}" if hi is not None else f"at least {lo}"
+        raise ValueError(f"`{where}` must be an integer {rng}, got {value!r}")
+    return value
+
+
+def static_bool(value, where: str) -> bool:
+    """A static flag: a Python or NumPy bool (not a traced value, not an int)."""
+    if not isinstance(value, bool | np.bool_):
+        raise ValueError(f"`{where}` must be a bool, got {value!r}")
+    return bool(value)
+
+
+def finite_tree(tree, where: str):
+    """:func:`finite_output` for a pytree of results (e.g. a nested list of entry arrays of
+    broadcast-compatible shapes): every leaf must be finite; returns the tree (guarded)."""
+    leaves = jax.tree_util.tree_leaves(tree)
+    message = f"`{where}` produced a non-finite result; check the parameters for NaN/inf"
+    if all(is_concrete(x) for x in leaves):
+        if not all(np.all(np.isfinite(np.asarray(x))) for x in leaves):
+            raise ValueError(message)
+        return tree
+    ok = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in leaves]))
+    return eqx.error_if(tree, jnp.logical_not(ok), message)

@@ -74,8 +74,8 @@ def couple(
     Y = jnp.asarray(receptance)
     if Y.ndim < 2 or Y.shape[-1] != Y.shape[-2]:
         raise ValueError(f"`couple(receptance=...)` must have shape (..., n, n), got {Y.shape}")
-    Y = Y.astype(jnp.complex128)
-    B = jnp.asarray(interface)
+    Y = _checks.finite(Y.astype(jnp.complex128), "couple(receptance=...)")
+    B = _checks.real_array(interface, "couple(interface=...)")
     if B.ndim == 1:
         B = B[None, :]
     if B.ndim != 2 or B.shape[1] != Y.shape[-1]:
@@ -83,6 +83,7 @@ def couple(
             f"`couple(interface=...)` must have shape (m, {Y.shape[-1]}), got {B.shape}"
         )
     m = B.shape[0]
+    B = _checks.finite(B, "couple(interface=...)")
     Bc = B.astype(jnp.complex128)
     Be = [[Bc[k, i] for i in range(B.shape[1])] for k in range(m)]
     if _checks.is_concrete(B):  # exact zeros of a concrete B are structural
@@ -93,10 +94,13 @@ def couple(
         J = jnp.asarray(joint).astype(jnp.complex128)
         if J.ndim < 2 or J.shape[-2:] != (m, m):
             raise ValueError(f"`couple(joint=...)` must have shape (..., {m}, {m}), got {J.shape}")
+        J = _checks.finite(J, "couple(joint=...)")
         Je = entries(J)
     out = couple_entries(entries(Y), Be, Je)
     batch = Y.shape[:-2] if joint is None else jnp.broadcast_shapes(Y.shape[:-2], J.shape[:-2])
-    return from_entries(out, shape=batch, dtype=jnp.complex128)
+    out = from_entries(out, shape=batch, dtype=jnp.complex128)
+    # a singular interface bracket (B Y Bᵀ + Y_j not invertible) shows up as inf/NaN here
+    return _checks.finite_output(out, "couple(...)")
 
 
 def block_diagonal(*blocks: Entries) -> Entries:
@@ -113,8 +117,17 @@ def block_diagonal(*blocks: Entries) -> Entries:
 
 
 def joint_receptance(stiffness, damping, omega) -> Complex[Array, ...]:
-    """Receptance of a spring–damper joint, ``1 / (k + iωc)`` (paper Eq. 1, last term)."""
-    k = jnp.asarray(stiffness).astype(jnp.complex128)
-    c = jnp.asarray(damping).astype(jnp.complex128)
-    w = jnp.asarray(omega).astype(jnp.complex128)
-    return 1.0 / (k + 1j * w * c)
+    """Receptance of a spring–damper joint, ``1 / (k + iωc)`` (paper Eq. 1, last term).
+
+    ``stiffness`` k > 0 (N/m), ``damping`` c ≥ 0 (N·s/m), finite angular frequencies ``omega``
+    (rad/s, real or complex); all broadcast against each other.
+    """
+    where = "joint_receptance({}=...)"
+    k = _checks.positive(_checks.real_array(stiffness, where.format("stiffness")),
+                         where.format("stiffness"))
+    c = _checks.nonnegative(_checks.real_array(damping, where.format("damping")),
+                            where.format("damping"))
+    w = _checks.finite(jnp.asarray(omega), where.format("omega"))
+    cx = _checks.to_complex
+    out = 1.0 / (cx(k) + 1j * cx(w) * cx(c))
+    return _checks.finite_output(out, "joint_receptance(...)")

@@ -36,10 +36,6 @@ INPUTS = ("T1", "F3")
 """Input coordinates of H_M: motor torque (N·m), disturbance force at the tool point (N)."""
 
 
-def _scalar(x) -> Array:
-    return jnp.asarray(x, dtype=jnp.float64)
-
-
 class BallScrewDrive(eqx.Module):
     """A ball-screw feed drive with position-dependent dynamics (paper Figs. 6–9).
 
@@ -51,6 +47,10 @@ class BallScrewDrive(eqx.Module):
         nut: the screw–nut joint (k_ja, c_ja).
         nut_offset: l0 (m): the nut sits at l = Y_table + l0 from the drive-end bearing.
         travel_m: (min, max) table position Y_table (m), static.
+
+    Every public method checks its inputs (positions inside the travel, finite frequencies)
+    and its result (finite): eagerly as a ``ValueError``, under ``jit``/``vmap``/``grad`` as an
+    ``eqx.error_if`` on the value that flows on.
     """
 
     screw: Screw
@@ -58,7 +58,7 @@ class BallScrewDrive(eqx.Module):
     axial: Axial
     carriage: Carriage
     nut: NutJoint
-    nut_offset: Float[Array, ""] = eqx.field(converter=_scalar)
+    nut_offset: Float[Array, ""] = _checks.finite_field("BallScrewDrive(nut_offset=...)")
     travel_m: tuple[float, float] = eqx.field(static=True, default=(0.1, 0.7))
 
     def __check_init__(self):
@@ -68,7 +68,6 @@ class BallScrewDrive(eqx.Module):
                 f"`BallScrewDrive(travel_m=...)` must be an increasing (min, max) pair, "
                 f"got {self.travel_m}"
             )
-        _checks.finite(self.nut_offset, "BallScrewDrive(nut_offset=...)")
         if _checks.is_concrete(self.nut_offset) and _checks.is_concrete(self.screw.length):
             l0, L = float(self.nut_offset), float(self.screw.length)
             if not (lo + l0 > 0 and hi + l0 < L):
@@ -77,47 +76,105 @@ class BallScrewDrive(eqx.Module):
                     f"inside the screw (0, {L:.6g}) m, got nut positions "
                     f"[{lo + l0:.6g}, {hi + l0:.6g}] m"
                 )
+        # Traced (e.g. vmapped) nut_offset or screw length: the nut is checked, per position,
+        # by every public method (`_check_travel`).
+
+    # ------------------------------------------------------------------ rigid-body summaries
+    def reflected_inertia(self) -> Float[Array, ""]:
+        r"""Inertia of the rigid drive reflected to the motor (kg·m²).
+
+            J_eq = J_m + J_de + J_fe + ρJ·L + m·i_sc²
+
+        (rotor with motor-side hub, screw-side and free-end hubs, the screw in torsion, and the
+        carriage through the screw ratio): the rigid-body asymptote x2/T1 → i_sc/(−ω²J_eq +
+        iωc_eq) far below the first mode, and the acceleration feed-forward of a rigid drive,
+        k_ffa = J_eq/(k_motor·i_sc).
+        """
+        r = self.rotary
+        rho_j = self.screw.section()[1]
+        return (r.motor_inertia + r.drive_end_inertia + r.free_end_inertia
+                + rho_j * self.screw.length + self.carriage.mass * self.screw.ratio**2)
+
+    def reflected_damping(self) -> Float[Array, ""]:
+        r"""Viscous damping of the rigid drive reflected to the motor (N·m·s/rad).
+
+            c_eq = c_m + c_de + c_fe + c_x·i_sc²
+
+        (motor and bearing friction, guideway damping through the screw ratio); the velocity
+        feed-forward of a rigid drive is k_ffv = c_eq/(k_motor·i_sc).
+        """
+        r = self.rotary
+        return (r.motor_damping + r.drive_end_damping + r.free_end_damping
+                + self.carriage.axial_damping * self.screw.ratio**2)
+
+    # ------------------------------------------------------------------ input checks
+    def _check_travel(self, position_m, fn: str) -> Array:
+        """Table positions of any shape: real, finite, inside ``travel_m`` and with the nut
+        inside the screw; returned as float64 (guarded when traced).  ``fn`` is the function
+        the user called, e.g. ``"BallScrewDrive.receptance"`` or ``"simulate"``."""
+        where = f"{fn}(position_m=...)"
+        pos = _checks.real_array(position_m, where)
+        lo, hi = self.travel_m
+        pos = _checks.check(
+            pos,
+            lambda p: (p >= lo) & (p <= hi),  # NaN fails both comparisons
+            where,
+            f"inside the travel [{lo:.6g}, {hi:.6g}] m",
+        )
+        # The nut stays inside the screw for every position of the travel when the drive was
+        # built with concrete values (__check_init__); a traced or tree_at-edited nut_offset
+        # or screw length is only known here.
+        l0, L = self.nut_offset, self.screw.length
+        expected = "such that the nut lies inside the screw, 0 < position_m + nut_offset < L"
+        if all(_checks.is_concrete(x) for x in (pos, l0, L)):
+            # NumPy scalars: a concrete jax array here would be staged into an enclosing trace
+            l0n, Ln = float(l0), float(L)
+            return _checks.check(pos, lambda p: (p + l0n > 0) & (p + l0n < Ln), where,
+                                 f"{expected} = {Ln:.6g} m")
+        ok = jnp.all((pos + l0 > 0) & (pos + l0 < L))
+        return eqx.error_if(pos, ~ok, f"`{where}` must be {expected}")
+
+    def _check_positions(self, position_m, fn: str = "BallScrewDrive.frf") -> Array:
+        """Table positions as a 1-D float64 array (a scalar becomes shape (1,)), checked as
+        :meth:`_check_travel` does, with messages naming ``fn``."""
+        pos = jnp.atleast_1d(_checks.real_array(position_m, f"{fn}(position_m=...)"))
+        if pos.ndim != 1:
+            raise ValueError(
+                f"`{fn}(position_m=...)` must be a scalar or 1-D, got shape {pos.shape}"
+            )
+        return self._check_travel(pos, fn)
+
+    def _check_point(self, position_m, omega, fn: str) -> tuple[Array, Array]:
+        """Broadcastable positions (m) and finite angular frequencies (rad/s, real or
+        complex) of the pointwise methods."""
+        pos = self._check_travel(position_m, fn)
+        omega = _checks.finite(jnp.asarray(omega), f"{fn}(omega=...)")
+        return pos, omega
 
     # ------------------------------------------------------------------ core (unchecked)
-    def substructure_receptances(self, position_m, omega):
-        """Uncoupled receptances: R (h11, h1l, hll), A h_ll and S (3×3 over x_n, x2, x3)."""
+    def _substructure_receptances(self, position_m, omega):
         l = jnp.asarray(position_m) + self.nut_offset
-        r = self.rotary.receptance(self.screw.torsion(), l, omega)
-        a = self.axial.receptance(self.screw.axial(), l, omega)
-        s = self.carriage.receptance(omega)
+        r = self.rotary._receptance(self.screw.torsion(), l, omega)
+        a = self.axial._receptance(self.screw.axial(), l, omega)
+        s = self.carriage._receptance(omega)
         return r, a, s
 
-    def coupled_receptance(self, position_m, omega) -> list[list[Complex[Array, ...]]]:
-        """Coupled receptance over (θ1, θ_l, u_l, x_n, x2, x3) by LM-FBS (paper Eq. 1).
-
-        Returned as a 6×6 nested list of broadcast arrays (see ``fdjax._linalg``).
-        """
-        (h11, h1l, hll), ha, hs = self.substructure_receptances(position_m, omega)
+    def _coupled_receptance(self, position_m, omega):
+        (h11, h1l, hll), ha, hs = self._substructure_receptances(position_m, omega)
         Y = block_diagonal([[h11, h1l], [h1l, hll]], [[ha]], hs)
         B = [[0, -jnp.asarray(self.screw.ratio).astype(jnp.complex128), -1.0, 1.0, 0, 0]]
-        joint = [[recip(self.nut.dynamic_stiffness(omega))]]
+        joint = [[recip(self.nut._dynamic_stiffness(omega))]]
         return couple_entries(Y, B, joint)
 
-    def receptance(self, position_m, omega) -> Complex[Array, "... 3 2"]:
-        """H_M at broadcastable table positions (m) and angular frequencies (rad/s), unchecked."""
-        return from_entries(self.receptance_entries(position_m, omega))
-
-    def receptance_entries(self, position_m, omega) -> list[list[Complex[Array, ...]]]:
-        """H_M as a 3×2 nested list of arrays (no interleaving; the fastest form in a jit)."""
-        Yc = self.coupled_receptance(position_m, omega)
+    def _receptance_entries(self, position_m, omega):
+        Yc = self._coupled_receptance(position_m, omega)
         return [[Yc[i][j] for j in (0, 5)] for i in (0, 4, 5)]
 
-    def receptance_direct(self, position_m, omega) -> Complex[Array, "... 3 2"]:
-        """H_M by assembling the whole drive as one dynamic stiffness (no coupling step).
-
-        DOFs (θ1, θ(0), θ(l), θ(L), u(0), u(l), u(L), x_c, ψ); the nut joint adds
-        ``(k_ja + iωc_ja) bᵀb`` with ``b = [0, 0, −i_sc, 0, 0, −1, 0, 1, h_n]``.  Independent of
-        the LM-FBS algebra, it proves the coupling's signs.
-        """
+    def _receptance_direct(self, position_m, omega):
         l = jnp.asarray(position_m) + self.nut_offset
-        dr, er = self.rotary.line(self.screw.torsion(), l, omega)
-        da, ea = self.axial.line(self.screw.axial(), l, omega)
-        axial, pitch = self.carriage.modal_stiffness(omega)
+        dr, er = self.rotary._line(self.screw.torsion(), l, omega)
+        da, ea = self.axial._line(self.screw.axial(), l, omega)
+        axial, pitch = self.carriage._modal_stiffness(omega)
         shape = jnp.broadcast_shapes(*[jnp.shape(x) for x in (*dr, *er, *da, *ea, axial, pitch)])
         Ds = jnp.zeros((*shape, 2, 2), jnp.complex128)
         Ds = Ds.at[..., 0, 0].set(jnp.broadcast_to(axial, shape))
@@ -131,7 +188,7 @@ class BallScrewDrive(eqx.Module):
         b = jnp.stack(
             [zero, zero, -self.screw.ratio, zero, zero, -one, zero, one, c.nut_height]
         ).astype(jnp.complex128)
-        kj = jnp.broadcast_to(self.nut.dynamic_stiffness(omega), shape)
+        kj = jnp.broadcast_to(self.nut._dynamic_stiffness(omega), shape)
         D = D + kj[..., None, None] * (b[:, None] * b[None, :])
         e = jnp.eye(9, dtype=jnp.float64)
         outputs = jnp.stack([e[0], e[7] + c.scale_height * e[8], e[7] + c.tool_height * e[8]])
@@ -140,6 +197,48 @@ class BallScrewDrive(eqx.Module):
         return jnp.einsum("oi,...ij->...oj", outputs.astype(jnp.complex128), X)
 
     # ------------------------------------------------------------------ public, checked
+    def substructure_receptances(self, position_m, omega):
+        """Uncoupled receptances: R (h11, h1l, hll), A h_ll and S (3×3 over x_n, x2, x3)."""
+        fn = "BallScrewDrive.substructure_receptances"
+        out = self._substructure_receptances(*self._check_point(position_m, omega, fn))
+        return _checks.finite_tree(out, f"{fn}(...)")
+
+    def coupled_receptance(self, position_m, omega) -> list[list[Complex[Array, ...]]]:
+        """Coupled receptance over (θ1, θ_l, u_l, x_n, x2, x3) by LM-FBS (paper Eq. 1).
+
+        Returned as a 6×6 nested list of broadcast arrays (see ``fdjax._linalg``).
+        """
+        fn = "BallScrewDrive.coupled_receptance"
+        out = self._coupled_receptance(*self._check_point(position_m, omega, fn))
+        return _checks.finite_tree(out, f"{fn}(...)")
+
+    def receptance(self, position_m, omega) -> Complex[Array, "... 3 2"]:
+        """H_M at broadcastable table positions (m) and angular frequencies (rad/s).
+
+        Positions must lie inside ``travel_m`` and ω must be finite (real, or complex for a
+        pole search); a non-finite result (ω = 0 is the rigid-body pole) is an error.
+        """
+        fn = "BallScrewDrive.receptance"
+        out = from_entries(self._receptance_entries(*self._check_point(position_m, omega, fn)))
+        return _checks.finite_output(out, f"{fn}(...)")
+
+    def receptance_entries(self, position_m, omega) -> list[list[Complex[Array, ...]]]:
+        """H_M as a 3×2 nested list of arrays (no interleaving; the fastest form in a jit)."""
+        fn = "BallScrewDrive.receptance_entries"
+        out = self._receptance_entries(*self._check_point(position_m, omega, fn))
+        return _checks.finite_tree(out, f"{fn}(...)")
+
+    def receptance_direct(self, position_m, omega) -> Complex[Array, "... 3 2"]:
+        """H_M by assembling the whole drive as one dynamic stiffness (no coupling step).
+
+        DOFs (θ1, θ(0), θ(l), θ(L), u(0), u(l), u(L), x_c, ψ); the nut joint adds
+        ``(k_ja + iωc_ja) bᵀb`` with ``b = [0, 0, −i_sc, 0, 0, −1, 0, 1, h_n]``.  Independent of
+        the LM-FBS algebra, it proves the coupling's signs.
+        """
+        fn = "BallScrewDrive.receptance_direct"
+        out = self._receptance_direct(*self._check_point(position_m, omega, fn))
+        return _checks.finite_output(out, f"{fn}(...)")
+
     def frf(
         self, position_m: Float[ArrayLike, " pos"], freq_hz: Float[ArrayLike, " freq"]
     ) -> Complex[Array, "pos freq 3 2"]:
@@ -156,7 +255,7 @@ class BallScrewDrive(eqx.Module):
         Returns:
             Complex array of shape (n_pos, n_freq, 3, 2).
         """
-        pos = self._check_positions(position_m)
+        pos = self._check_positions(position_m, "BallScrewDrive.frf")
         freq_hz = _checks.frequency_grid(freq_hz, "BallScrewDrive.frf(freq_hz=...)")
         out = _drive_frf(self, pos, freq_hz)
         return _checks.finite_output(out, "BallScrewDrive.frf(...)")
@@ -165,45 +264,34 @@ class BallScrewDrive(eqx.Module):
         self, position_m: Float[ArrayLike, " pos"], freq_hz: Float[ArrayLike, " freq"]
     ) -> Complex[Array, "pos freq 3 2"]:
         """Same as :meth:`frf` by direct assembly (one model, no coupling step); a reference."""
-        pos = self._check_positions(position_m)
+        pos = self._check_positions(position_m, "BallScrewDrive.frf_direct")
         freq_hz = _checks.frequency_grid(freq_hz, "BallScrewDrive.frf_direct(freq_hz=...)")
-        return _drive_frf_direct(self, pos, freq_hz)
-
-    def _check_positions(self, position_m) -> Array:
-        pos = jnp.atleast_1d(jnp.asarray(position_m, dtype=jnp.float64))
-        if pos.ndim != 1:
-            raise ValueError(
-                "`BallScrewDrive.frf(position_m=...)` must be a scalar or 1-D, "
-                f"got shape {pos.shape}"
-            )
-        lo, hi = self.travel_m
-        return _checks.check(
-            pos,
-            lambda p: (p >= lo) & (p <= hi),
-            "BallScrewDrive.frf(position_m=...)",
-            f"inside the travel [{lo:.6g}, {hi:.6g}] m",
-        )
+        out = _drive_frf_direct_jit(self, pos, freq_hz)
+        return _checks.finite_output(out, "BallScrewDrive.frf_direct(...)")
 
 
 def _drive_frf(drive: BallScrewDrive, pos, freq_hz):
     # Two compiled stages on purpose: fused into one program, XLA's concatenate fusion would
     # recompute the shared substructure algebra once per output entry (≈6× slower).
-    return stack_entries(_drive_entries(drive, pos, freq_hz))
+    return stack_entries(_drive_entries_jit(drive, pos, freq_hz))
 
 
-@eqx.filter_jit
 def _drive_entries(drive: BallScrewDrive, pos, freq_hz):
     omega = 2 * jnp.pi * freq_hz
     shape = (pos.shape[0], freq_hz.shape[0])
-    H = drive.receptance_entries(pos[:, None], omega[None, :])
+    H = drive._receptance_entries(pos[:, None], omega[None, :])
     return [[jnp.broadcast_to(x, shape) for x in row] for row in H]
 
 
-
-@eqx.filter_jit
 def _drive_frf_direct(drive: BallScrewDrive, pos, freq_hz):
     omega = 2 * jnp.pi * freq_hz
-    return jax.vmap(lambda p: drive.receptance_direct(p, omega))(pos)
+    return jax.vmap(lambda p: drive._receptance_direct(p, omega))(pos)
+
+
+# The positions and frequencies reach these as arrays (never Python floats, which
+# eqx.filter_jit would treat as static and compile once per value).
+_drive_entries_jit = eqx.filter_jit(_drive_entries)
+_drive_frf_direct_jit = eqx.filter_jit(_drive_frf_direct)
 
 
 def reference_drive() -> BallScrewDrive:

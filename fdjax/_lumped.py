@@ -16,8 +16,20 @@ from ._linalg import entries, inv_entries, small_inv
 __all__ = ["LumpedModel", "chain_model", "three_mass"]
 
 
-def _matrix(x) -> Array:
-    return jnp.asarray(x, dtype=jnp.float64)
+def _matrix_field(name: str):
+    """A float64 matrix field whose converter checks it is finite, so that the guarded value is
+    the stored leaf (the check survives jit, unlike one in __check_init__)."""
+    where = f"LumpedModel({name}=...)"
+
+    def convert(x):
+        return _checks.finite(_checks.real_array(x, where), where)
+
+    return eqx.field(converter=convert)
+
+
+def _omega(omega, where: str) -> Array:
+    """Angular frequencies (rad/s, real or complex, any shape) that must be finite."""
+    return _checks.finite(jnp.asarray(omega), where)
 
 
 class LumpedModel(eqx.Module):
@@ -35,9 +47,9 @@ class LumpedModel(eqx.Module):
         damping: viscous damping matrix ``C`` (n, n), N·s/m, symmetric positive semi-definite.
     """
 
-    mass: Float[Array, "n n"] = eqx.field(converter=_matrix)
-    stiffness: Float[Array, "n n"] = eqx.field(converter=_matrix)
-    damping: Float[Array, "n n"] = eqx.field(converter=_matrix)
+    mass: Float[Array, "n n"] = _matrix_field("mass")
+    stiffness: Float[Array, "n n"] = _matrix_field("stiffness")
+    damping: Float[Array, "n n"] = _matrix_field("damping")
 
     def __check_init__(self):
         n = self.mass.shape[-1]
@@ -47,7 +59,6 @@ class LumpedModel(eqx.Module):
                 raise ValueError(
                     f"`LumpedModel({name}=...)` must have shape ({n}, {n}), got {a.shape}"
                 )
-            _checks.finite(a, f"LumpedModel({name}=...)")
         for name in ("stiffness", "damping"):
             a = getattr(self, name)
             if _checks.is_concrete(a) and not np.allclose(np.asarray(a), np.asarray(a).T,
@@ -69,16 +80,24 @@ class LumpedModel(eqx.Module):
         return self.mass.shape[-1]
 
     def dynamic_stiffness(self, omega: Float[ArrayLike, "*b"]) -> Complex[Array, "*b n n"]:
-        """``D(ω) = K − ω² M + iωC`` at angular frequencies ``omega`` (rad/s)."""
-        w = jnp.asarray(omega, jnp.float64)[..., None, None].astype(jnp.complex128)
+        """``D(ω) = K − ω² M + iωC`` at finite angular frequencies ``omega`` (rad/s)."""
+        return self._dynamic_stiffness(
+            _omega(omega, "LumpedModel.dynamic_stiffness(omega=...)")
+        )
+
+    def _dynamic_stiffness(self, omega):
+        w = _checks.to_complex(omega)[..., None, None]
         K = self.stiffness.astype(jnp.complex128)
         M = self.mass.astype(jnp.complex128)
         C = self.damping.astype(jnp.complex128)
         return K - w * w * M + 1j * w * C
 
     def receptance(self, omega: Float[ArrayLike, "*b"]) -> Complex[Array, "*b n n"]:
-        """``H(ω) = D(ω)⁻¹`` at angular frequencies ``omega`` (rad/s), no input checks."""
-        return small_inv(self.dynamic_stiffness(omega))
+        """``H(ω) = D(ω)⁻¹`` at finite angular frequencies ``omega`` (rad/s); a non-finite
+        result (a free model at ω = 0, an undamped resonance) is an error."""
+        omega = _omega(omega, "LumpedModel.receptance(omega=...)")
+        H = small_inv(self._dynamic_stiffness(omega))
+        return _checks.finite_output(H, "LumpedModel.receptance(...)")
 
     def frf(self, freq_hz: Float[ArrayLike, " freq"]) -> Complex[Array, "freq n n"]:
         """Receptance matrix ``H[f, i, j] = x_i / F_j`` (m/N) on a frequency grid in Hz."""
@@ -111,7 +130,7 @@ class LumpedModel(eqx.Module):
 def _frf_upper(model: LumpedModel, freq_hz):
     # The receptance of a symmetric model is symmetric (reciprocity): compute the upper
     # triangle only, and the finiteness flag in the same program.
-    inv = inv_entries(entries(model.dynamic_stiffness(2 * jnp.pi * freq_hz)))
+    inv = inv_entries(entries(model._dynamic_stiffness(2 * jnp.pi * freq_hz)))
     n = model.size
     upper = [inv[i][j] for i in range(n) for j in range(i, n)]
     finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in upper]))
@@ -146,9 +165,16 @@ def chain_model(
         dampings: c_i in parallel with k_i (N·s/m), non-negative.
         mass_dampings: optional dampers from each mass to ground (N·s/m), e.g. the paper's c_m2.
     """
-    m = _checks.positive(jnp.asarray(masses, jnp.float64), "chain_model(masses=...)")
-    k = _checks.positive(jnp.asarray(stiffnesses, jnp.float64), "chain_model(stiffnesses=...)")
-    c = _checks.nonnegative(jnp.asarray(dampings, jnp.float64), "chain_model(dampings=...)")
+    def vector(x, name, test):
+        where = f"chain_model({name}=...)"
+        v = _checks.real_array(x, where)
+        if v.ndim != 1:
+            raise ValueError(f"`{where}` must be 1-D, got shape {v.shape}")
+        return test(v, where)
+
+    m = vector(masses, "masses", _checks.positive)
+    k = vector(stiffnesses, "stiffnesses", _checks.positive)
+    c = vector(dampings, "dampings", _checks.nonnegative)
     n = m.shape[0]
     if k.shape != (n - 1,) or c.shape != (n - 1,):
         raise ValueError(
@@ -161,8 +187,13 @@ def chain_model(
         D = jnp.eye(n, n - 1) - jnp.eye(n, n - 1, k=-1)
         return (D * e) @ D.T
 
-    cg = jnp.zeros(n) if mass_dampings is None else jnp.asarray(mass_dampings, jnp.float64)
-    cg = _checks.nonnegative(cg, "chain_model(mass_dampings=...)")
+    cg = jnp.zeros(n) if mass_dampings is None else mass_dampings
+    cg = vector(cg, "mass_dampings", _checks.nonnegative)
+    if cg.shape != (n,):
+        raise ValueError(
+            f"`chain_model(mass_dampings=...)` must have {n} entries for {n} masses, "
+            f"got {cg.shape[0]}"
+        )
     return LumpedModel(jnp.diag(m), assemble(k), assemble(c) + jnp.diag(cg))
 
 

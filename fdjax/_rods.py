@@ -31,12 +31,13 @@ from ._linalg import recip
 __all__ = ["Rod", "Support", "rod_receptance"]
 
 
-def _scalar(x) -> Array:
-    return jnp.asarray(x, dtype=jnp.float64)
+_scalar = _checks.to_float
+_cplx = _checks.to_complex
 
 
-def _cplx(x) -> Array:
-    return jnp.asarray(x).astype(jnp.complex128)
+def _omega(omega, where: str) -> Array:
+    """Angular frequencies (rad/s, real or complex, any shape) that must be finite."""
+    return _checks.finite(jnp.asarray(omega), where)
 
 
 class Rod(eqx.Module):
@@ -92,28 +93,40 @@ class Rod(eqx.Module):
         return jnp.sqrt(self.stiffness / self.inertia)
 
     def complex_stiffness(self, omega) -> Complex[Array, ...]:
-        """``Z*(ω) = Z (1 + iη + iωβ)``."""
-        w = _cplx(omega)
-        return _cplx(self.stiffness) * (
-            1 + 1j * (_cplx(self.loss_factor) + w * _cplx(self.retardation))
-        )
+        """``Z*(ω) = Z (1 + iη + iωβ)`` at finite angular frequencies ``omega`` (rad/s)."""
+        return self._complex_stiffness(_omega(omega, "Rod.complex_stiffness(omega=...)"))
 
     def impedance(self, omega) -> tuple[Complex[Array, ...], Complex[Array, ...]]:
         """``(κZ*, κ)``: wave impedance ``κZ* = ω√(μZ*)`` and wavenumber ``κ = ω√(μ/Z*)``."""
-        w = _cplx(omega)
-        zs = self.complex_stiffness(omega)
-        mu = _cplx(self.inertia)
-        return w * jnp.sqrt(mu * zs), w * jnp.sqrt(mu / zs)
+        return self._impedance(_omega(omega, "Rod.impedance(omega=...)"))
 
     def segment_stiffness(
         self, omega, length
     ) -> tuple[Complex[Array, ...], Complex[Array, ...]]:
         """Diagonal and off-diagonal entries of ``D_seg`` for a segment of the given length.
 
-        ``d = κZ* cot(κa)``, ``e = −κZ*/sin(κa)``.
+        ``d = κZ* cot(κa)``, ``e = −κZ*/sin(κa)``; ``length`` a > 0 (m).
         """
-        kz, k = self.impedance(omega)
-        return _segment(kz, jnp.exp(1j * k * _cplx(length)))
+        kz, k = self._impedance(_omega(omega, "Rod.segment_stiffness(omega=...)"))
+        a = _checks.positive(
+            _checks.real_array(length, "Rod.segment_stiffness(length=...)"),
+            "Rod.segment_stiffness(length=...)",
+        )
+        return _segment(kz, jnp.exp(1j * k * _cplx(a)))
+
+    # Unchecked forms for the hot paths (line_stiffness and the drive), whose inputs are
+    # validated once at the public entry point.
+    def _complex_stiffness(self, omega):
+        w = _cplx(omega)
+        return _cplx(self.stiffness) * (
+            1 + 1j * (_cplx(self.loss_factor) + w * _cplx(self.retardation))
+        )
+
+    def _impedance(self, omega):
+        w = _cplx(omega)
+        zs = self._complex_stiffness(omega)
+        mu = _cplx(self.inertia)
+        return w * jnp.sqrt(mu * zs), w * jnp.sqrt(mu / zs)
 
     def frf(
         self,
@@ -124,14 +137,8 @@ class Rod(eqx.Module):
     ) -> Complex[Array, "freq p p"]:
         """Receptance matrix between points along the rod (see :func:`rod_receptance`)."""
         freq_hz = _checks.frequency_grid(freq_hz, "Rod.frf(freq_hz=...)")
-        points = jnp.atleast_1d(jnp.asarray(points_m, jnp.float64))
-        _checks.check(
-            points,
-            lambda p: (p >= 0) & (p <= self.length),
-            "Rod.frf(points_m=...)",
-            f"within [0, {_checks.fmt(self.length)}] m",
-        )
-        out = rod_receptance(self, 2 * jnp.pi * freq_hz, points, left, right)
+        points = _check_points(self, points_m, "Rod.frf")
+        out = _rod_receptance(self, 2 * jnp.pi * freq_hz, points, left, right)
         return _checks.finite_output(out, "Rod.frf(...)")
 
 
@@ -151,6 +158,10 @@ class Support(eqx.Module):
     mass: Float[Array, ""] = _checks.nonnegative_field("Support(mass=...)", default=0.0)
 
     def dynamic_stiffness(self, omega) -> Complex[Array, ...]:
+        """``k + iωc − ω²m`` at finite angular frequencies ``omega`` (rad/s)."""
+        return self._dynamic_stiffness(_omega(omega, "Support.dynamic_stiffness(omega=...)"))
+
+    def _dynamic_stiffness(self, omega):
         w = _cplx(omega)
         return _cplx(self.stiffness) + 1j * w * _cplx(self.damping) - w * w * _cplx(self.mass)
 
@@ -217,7 +228,7 @@ def line_stiffness(
     exponential and the end nodes depend on frequency only.
     """
     n = len(nodes_m)
-    kz, k = rod.impedance(omega)
+    kz, k = rod._impedance(omega)
     phases = [jnp.ones((), jnp.complex128)]
     phases += [jnp.exp(1j * k * _cplx(x)) for x in nodes_m[1:-1]]
     phases.append(jnp.exp(1j * k * _cplx(rod.length)))
@@ -231,7 +242,7 @@ def line_stiffness(
         off.append(e)
     for i, s in enumerate(supports):
         if s is not None:
-            diag[i] = diag[i] + s.dynamic_stiffness(omega)
+            diag[i] = diag[i] + s._dynamic_stiffness(omega)
     return diag, off
 
 
@@ -249,7 +260,46 @@ def rod_receptance(
 
     Closed-form checks (tested): a fixed–free rod resonates at ``(2r−1)c/4L``, a free–free rod at
     ``rc/2L``, and a rod with a tip mass m_tip satisfies ``βL tan βL = m_rod/m_tip``.
+
+    ``omega`` (rad/s) must be real and finite, shape ``(freq,)``; the points must lie in
+    ``[0, L]`` and, when they are traced (inside ``jit``/``vmap``/``grad``, where they cannot be
+    sorted and merged in Python), be strictly increasing and strictly inside ``(0, L)``.
     """
+    where = "rod_receptance(omega=...)"
+    omega = _checks.finite(_checks.real_array(omega, where), where)
+    if omega.ndim != 1:
+        raise ValueError(f"`{where}` must be 1-D, got shape {omega.shape}")
+    points = _check_points(rod, points_m, "rod_receptance")
+    out = _rod_receptance(rod, omega, points, left, right)
+    return _checks.finite_output(out, "rod_receptance(...)")
+
+
+def _check_points(rod: Rod, points_m, fn: str) -> Array:
+    """Points along the rod: real, scalar or 1-D, in [0, L]; traced, also strictly increasing
+    and interior (the traced path of ``_rod_receptance`` makes one segment per gap)."""
+    where = f"{fn}(points_m=...)"
+    points = jnp.atleast_1d(_checks.real_array(points_m, where))
+    if points.ndim != 1:
+        raise ValueError(f"`{where}` must be a scalar or 1-D, got shape {points.shape}")
+    L = rod.length
+    expected = "within [0, L] m, L = Rod(length=...)"
+    if _checks.is_concrete(points) and _checks.is_concrete(L):
+        Ln = float(L)  # a NumPy scalar: a jax array would be staged into an enclosing trace
+        return _checks.check(points, lambda p: (p >= 0) & (p <= Ln), where,
+                             f"within [0, {Ln:.6g}] m")
+    inside = (points >= 0) & (points <= L)
+    points = eqx.error_if(points, ~jnp.all(inside), f"`{where}` must be {expected}")
+    gaps = jnp.diff(jnp.concatenate([jnp.zeros(1), points, jnp.atleast_1d(L)]))
+    return eqx.error_if(
+        points,
+        ~jnp.all(gaps > 0),
+        f"`{where}` must be strictly increasing and strictly inside (0, L) when traced "
+        "(under jit/vmap/grad; concrete points may repeat, be unsorted or sit on the ends)",
+    )
+
+
+def _rod_receptance(rod, omega, points_m, left=None, right=None):
+    """The unchecked core of :func:`rod_receptance`."""
     omega = jnp.asarray(omega, jnp.float64)[:, None]
     pts = jnp.atleast_1d(jnp.asarray(points_m, jnp.float64))
     p = pts.shape[0]

@@ -90,6 +90,7 @@ from jaxtyping import Array, ArrayLike, Complex, Float
 
 from . import _checks
 from ._drive import INPUTS, OUTPUTS, BallScrewDrive
+from ._lti import transfer
 
 __all__ = [
     "FEMatrices",
@@ -117,8 +118,7 @@ VELOCITY_OUTPUTS = ("theta1_dot", "x2_dot", "x3_dot")
 _TWO_PI = 2.0 * math.pi
 
 
-def _cplx(x) -> Array:
-    return jnp.asarray(x).astype(jnp.complex128)
+_cplx = _checks.to_complex
 
 
 # ------------------------------------------------------------------------------------ modules
@@ -144,7 +144,7 @@ class FEMatrices(eqx.Module):
     def frf(self, freq_hz: Float[ArrayLike, " freq"]) -> Complex[Array, "freq 3 2"]:
         """Full (untruncated) receptance ``S (K + iωC − ω²M)⁻¹ F``, shape (n_freq, 3, 2)."""
         freq_hz = _checks.frequency_grid(freq_hz, "FEMatrices.frf(freq_hz=...)")
-        return _fe_frf(self, freq_hz)
+        return _checks.finite_output(_fe_frf(self, freq_hz), "FEMatrices.frf(...)")
 
 
 class StateSpace(eqx.Module):
@@ -161,6 +161,8 @@ class StateSpace(eqx.Module):
         natural_freq_hz: undamped natural frequencies of the kept modes (m,), ascending; the
             first is the rigid-body mode at 0 Hz.
         position_m: the table position Y_table (m).
+        screw_ratio: the drive's i_sc = lead/2π (m/rad), which turns the encoder's motor speed
+            into the table's linear units (the speed loop of a controller needs it).
         outputs, inputs, velocity_outputs: names of the channels (static).
     """
 
@@ -171,6 +173,7 @@ class StateSpace(eqx.Module):
     C_velocity: Float[Array, "3 s"]
     natural_freq_hz: Float[Array, " m"]
     position_m: Float[Array, ""]
+    screw_ratio: Float[Array, ""]
     outputs: tuple[str, ...] = eqx.field(static=True, default=OUTPUTS)
     inputs: tuple[str, ...] = eqx.field(static=True, default=INPUTS)
     velocity_outputs: tuple[str, ...] = eqx.field(static=True, default=VELOCITY_OUTPUTS)
@@ -189,9 +192,13 @@ class StateSpace(eqx.Module):
         (θ1, x2, x3) per inputs (T1, F3), shape (n_freq, 3, 2).
         """
         freq_hz = _checks.frequency_grid(freq_hz, "StateSpace.frf(freq_hz=...)")
+        velocity = _checks.static_bool(velocity, "StateSpace.frf(velocity=...)")
+        s = 1j * _cplx(_TWO_PI * freq_hz)
         if velocity:
-            return _ss_frf(self.A, self.B, self.C_velocity, jnp.zeros_like(self.D), freq_hz)
-        return _ss_frf(self.A, self.B, self.C, self.D, freq_hz)
+            out = _transfer_jit(self.A, self.B, self.C_velocity, jnp.zeros_like(self.D), s)
+        else:
+            out = _transfer_jit(self.A, self.B, self.C, self.D, s)
+        return _checks.finite_output(out, "StateSpace.frf(...)")
 
 
 # ------------------------------------------------------------------------------------ assembly
@@ -356,6 +363,7 @@ def _realise(drive, position_m, n: int, n_modes: int, residual: bool, nut_correc
         C_velocity=Cv,
         natural_freq_hz=_safe_sqrt(lam_m) / _TWO_PI,
         position_m=jnp.asarray(position_m, jnp.float64),
+        screw_ratio=jnp.asarray(drive.screw.ratio, jnp.float64),
     )
 
 
@@ -380,41 +388,29 @@ def _fe_frf(fe: FEMatrices, freq_hz):
     return _cplx(fe.outputs) @ X
 
 
-@eqx.filter_jit
-def _ss_frf(A, B, C, D, freq_hz):
-    s = _cplx(_TWO_PI * freq_hz)[:, None, None] * 1j
-    n = A.shape[0]
-    Z = s * jnp.eye(n, dtype=jnp.complex128) - _cplx(A)
-    X = jnp.linalg.solve(Z, jnp.broadcast_to(_cplx(B), (freq_hz.shape[0], *B.shape)))
-    return _cplx(C) @ X + _cplx(D)
+_transfer_jit = eqx.filter_jit(transfer)
 
 
 # ------------------------------------------------------------------------------------ checks
-def _check_count(value, where: str) -> int:
-    """A static count: a Python/NumPy int ≥ 1."""
-    if isinstance(value, bool) or not isinstance(value, int | np.integer):
-        raise ValueError(f"`{where}` must be an int, got {value!r}")
-    if value < 1:
-        raise ValueError(f"`{where}` must be at least 1, got {value}")
-    return int(value)
-
-
 def _check_inputs(drive: BallScrewDrive, position_m, fn: str) -> tuple[BallScrewDrive, Array]:
-    """Validate the position (scalar, inside the travel) and η = 0; return both, guarded."""
-    pos = jnp.asarray(position_m)
+    """Validate the position (real scalar, inside the travel) and η = 0; return both, guarded.
+
+    The position comes back as a float64 array, so a Python float reaches the jitted
+    assembly as a traced argument (a static one would compile once per value)."""
+    drive = _check_time_domain(drive, fn)
+    pos = _checks.real_array(position_m, f"{fn}(position_m=...)")
     if pos.ndim != 0:
         raise ValueError(
             f"`{fn}(position_m=...)` must be a scalar (use jax.vmap over positions), "
             f"got shape {pos.shape}"
         )
-    pos = pos.astype(jnp.float64)
-    lo, hi = drive.travel_m
-    pos = _checks.check(
-        pos,
-        lambda p: (p >= lo) & (p <= hi),
-        f"{fn}(position_m=...)",
-        f"inside the travel [{lo:.6g}, {hi:.6g}] m",
-    )
+    return drive, drive._check_travel(pos, fn)
+
+
+def _check_time_domain(drive: BallScrewDrive, fn: str) -> BallScrewDrive:
+    """A drive with a time-domain realisation: the screw's loss factor η must be 0."""
+    if not isinstance(drive, BallScrewDrive):
+        raise ValueError(f"`{fn}(drive=...)` must be a BallScrewDrive, got {type(drive).__name__}")
     eta = drive.screw.loss_factor
     expected = (
         "0 for a time-domain model (hysteretic damping has no state-space realisation; use "
@@ -422,13 +418,13 @@ def _check_inputs(drive: BallScrewDrive, position_m, fn: str) -> tuple[BallScrew
     )
     if _checks.is_concrete(eta):
         _checks.check(eta, lambda v: v == 0, "Screw(loss_factor=...)", expected)
-        return drive, pos
+        return drive
     # η itself enters no FE matrix: guard the screw length, which enters all of them, so the
     # check survives jit's dead-code elimination.
     length = eqx.error_if(
         drive.screw.length, eta != 0, f"`Screw(loss_factor=...)` must be {expected}"
     )
-    return eqx.tree_at(lambda d: d.screw.length, drive, length), pos
+    return eqx.tree_at(lambda d: d.screw.length, drive, length)
 
 
 def _is_concrete_tree(tree) -> bool:
@@ -455,9 +451,10 @@ def fe_matrices(
         nut_correction: add the element's local compliance ξ(1−ξ)h/Z in series with the nut
             (static); makes the convergence O(h²) at every position.
     """
-    n = _check_count(n_elements, "fe_matrices(n_elements=...)")
+    n = _checks.static_int(n_elements, "fe_matrices(n_elements=...)", 1)
+    nut = _checks.static_bool(nut_correction, "fe_matrices(nut_correction=...)")
     drive, pos = _check_inputs(drive, position_m, "fe_matrices")
-    return _assemble_jit(drive, pos, n, bool(nut_correction))
+    return _assemble_jit(drive, pos, n, nut)
 
 
 def count_modes(
@@ -474,17 +471,19 @@ def count_modes(
     that one static ``n_modes`` serves every position (and ``jax.vmap`` over positions).
     Needs concrete drive parameters (not inside ``grad``/``vmap`` over the drive).
     """
-    n = _check_count(n_elements, "count_modes(n_elements=...)")
-    n_positions = _check_count(n_positions, "count_modes(n_positions=...)")
-    return _count_modes(drive, band_hz, n, n_positions, bool(nut_correction), "count_modes")
+    if not isinstance(drive, BallScrewDrive):
+        raise ValueError(
+            f"`count_modes(drive=...)` must be a BallScrewDrive, got {type(drive).__name__}"
+        )
+    n = _checks.static_int(n_elements, "count_modes(n_elements=...)", 1)
+    n_positions = _checks.static_int(n_positions, "count_modes(n_positions=...)", 1)
+    nut = _checks.static_bool(nut_correction, "count_modes(nut_correction=...)")
+    return _count_modes(drive, band_hz, n, n_positions, nut, "count_modes")
 
 
 def _count_modes(drive, band_hz, n: int, n_positions: int, nut_correction: bool, fn: str) -> int:
-    if not _checks.is_concrete(band_hz):
-        raise ValueError(f"`{fn}(band_hz=...)` must be a concrete number, not traced")
-    band = float(band_hz)
-    if not (np.isfinite(band) and band > 0):
-        raise ValueError(f"`{fn}(band_hz=...)` must be finite and positive, got {band:.6g}")
+    band = _checks.concrete_float(band_hz, f"{fn}(band_hz=...)")
+    _checks.positive(band, f"{fn}(band_hz=...)")
     hint = (
         "pass `state_space(n_modes=...)` (the state size is static), counted once outside "
         "with `fdjax.count_modes(drive, band_hz)`"
@@ -495,7 +494,8 @@ def _count_modes(drive, band_hz, n: int, n_positions: int, nut_correction: bool,
             f"inside jit/grad/vmap over the drive {hint}"
         )
     lo, hi = drive.travel_m
-    f = _natural_freqs(drive, jnp.linspace(lo, hi, n_positions), n, nut_correction)
+    positions = drive._check_travel(jnp.linspace(lo, hi, n_positions), fn)
+    f = _natural_freqs(drive, positions, n, nut_correction)
     if not _checks.is_concrete(f):
         raise ValueError(f"`{fn}(...)` cannot count modes inside `jax.jit`: {hint}")
     counts = np.sum(np.asarray(f) <= band, axis=-1)
@@ -540,11 +540,13 @@ def state_space(
     Returns:
         A :class:`StateSpace` with 2·n_modes states.
     """
-    n = _check_count(n_elements, "state_space(n_elements=...)")
+    n = _checks.static_int(n_elements, "state_space(n_elements=...)", 1)
+    residual = _checks.static_bool(residual, "state_space(residual=...)")
+    nut = _checks.static_bool(nut_correction, "state_space(nut_correction=...)")
     drive, pos = _check_inputs(drive, position_m, "state_space")
     N = 2 * n + 5
     if n_modes is None:
-        n_modes = _count_modes(drive, band_hz, n, 11, bool(nut_correction), "state_space")
+        n_modes = _count_modes(drive, band_hz, n, 11, nut, "state_space")
     elif isinstance(n_modes, bool) or not isinstance(n_modes, int | np.integer):
         raise ValueError(f"`state_space(n_modes=...)` must be an int or None, got {n_modes!r}")
     if not 1 <= n_modes <= N:
@@ -552,4 +554,4 @@ def state_space(
             f"`state_space(n_modes=...)` must be in [1, {N}] (2·n_elements + 5 DOFs), "
             f"got {n_modes}"
         )
-    return _realise_jit(drive, pos, n, int(n_modes), bool(residual), bool(nut_correction))
+    return _realise_jit(drive, pos, n, int(n_modes), residual, nut)

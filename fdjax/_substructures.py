@@ -24,12 +24,25 @@ from ._rods import Rod, Support, line_stiffness, spring_stiffness, tridiagonal_r
 __all__ = ["Screw", "Rotary", "Axial", "Carriage", "NutJoint"]
 
 
-def _scalar(x) -> Array:
-    return jnp.asarray(x, dtype=jnp.float64)
+_cplx = _checks.to_complex
 
 
-def _cplx(x) -> Array:
-    return jnp.asarray(x).astype(jnp.complex128)
+def _omega(omega, where: str) -> Array:
+    """Angular frequencies (rad/s, real or complex, any shape) that must be finite."""
+    return _checks.finite(jnp.asarray(omega), where)
+
+
+def _nut_point(shaft: Rod, l, where: str) -> Array:
+    """The nut point l (m) strictly inside the screw (0, L): an end would be a zero-length
+    segment."""
+    l = _checks.real_array(l, where)
+    L = shaft.length
+    if _checks.is_concrete(l) and _checks.is_concrete(L):
+        Ln = float(L)  # a NumPy scalar: a jax array would be staged into an enclosing trace
+        return _checks.check(l, lambda x: (x > 0) & (x < Ln), where,
+                             f"strictly inside (0, {Ln:.6g}) m")
+    ok = jnp.all((l > 0) & (l < L))
+    return eqx.error_if(l, ~ok, f"`{where}` must be strictly inside (0, L) m")
 
 
 def tridiagonal_dense(diag, off) -> Complex[Array, "... n n"]:
@@ -140,7 +153,17 @@ class Rotary(eqx.Module):
     )
 
     def line(self, shaft: Rod, l, omega):
-        """Tridiagonal dynamic stiffness over (θ1, θ(0), θ(l), θ(L))."""
+        """Tridiagonal dynamic stiffness over (θ1, θ(0), θ(l), θ(L)), 0 < l < L (m)."""
+        l = _nut_point(shaft, l, "Rotary.line(l=...)")
+        return self._line(shaft, l, _omega(omega, "Rotary.line(omega=...)"))
+
+    def receptance(self, shaft: Rod, l, omega):
+        """(h_11, h_1l, h_ll): motor and nut-point rotation per torque (rad/(N·m))."""
+        l = _nut_point(shaft, l, "Rotary.receptance(l=...)")
+        out = self._receptance(shaft, l, _omega(omega, "Rotary.receptance(omega=...)"))
+        return _checks.finite_tree(out, "Rotary.receptance(...)")
+
+    def _line(self, shaft: Rod, l, omega):
         diag, off = line_stiffness(
             shaft,
             omega,
@@ -156,9 +179,8 @@ class Rotary(eqx.Module):
         motor = kc - w * w * _cplx(self.motor_inertia) + 1j * w * _cplx(self.motor_damping)
         return [motor, diag[0] + kc, *diag[1:]], [-kc, *off]
 
-    def receptance(self, shaft: Rod, l, omega):
-        """(h_11, h_1l, h_ll): motor and nut-point rotation per torque (rad/(N·m))."""
-        diag, off = self.line(shaft, l, omega)
+    def _receptance(self, shaft: Rod, l, omega):
+        diag, off = self._line(shaft, l, omega)
         return tuple(tridiagonal_receptance(diag, off, [(0, 0), (0, 2), (2, 2)]))
 
 
@@ -189,7 +211,17 @@ class Axial(eqx.Module):
     )
 
     def line(self, rod: Rod, l, omega):
-        """Tridiagonal dynamic stiffness over (u(0), u(l), u(L))."""
+        """Tridiagonal dynamic stiffness over (u(0), u(l), u(L)), 0 < l < L (m)."""
+        l = _nut_point(rod, l, "Axial.line(l=...)")
+        return self._line(rod, l, _omega(omega, "Axial.line(omega=...)"))
+
+    def receptance(self, rod: Rod, l, omega):
+        """h_ll: axial displacement of the screw at the nut per axial force (m/N)."""
+        l = _nut_point(rod, l, "Axial.receptance(l=...)")
+        out = self._receptance(rod, l, _omega(omega, "Axial.receptance(omega=...)"))
+        return _checks.finite_output(out, "Axial.receptance(...)")
+
+    def _line(self, rod: Rod, l, omega):
         return line_stiffness(
             rod,
             omega,
@@ -201,9 +233,8 @@ class Axial(eqx.Module):
             ],
         )
 
-    def receptance(self, rod: Rod, l, omega):
-        """h_ll: axial displacement of the screw at the nut per axial force (m/N)."""
-        diag, off = self.line(rod, l, omega)
+    def _receptance(self, rod: Rod, l, omega):
+        diag, off = self._line(rod, l, omega)
         return tridiagonal_receptance(diag, off, [(1, 1)])[0]
 
 
@@ -243,6 +274,14 @@ class Carriage(eqx.Module):
 
     def modal_stiffness(self, omega):
         """Dynamic stiffness of the axial and pitch coordinates (diagonal)."""
+        return self._modal_stiffness(_omega(omega, "Carriage.modal_stiffness(omega=...)"))
+
+    def receptance(self, omega) -> list[list[Complex[Array, ...]]]:
+        """Receptance over (x_n, x_2, x_3) per axial force at those points (m/N), as entries."""
+        out = self._receptance(_omega(omega, "Carriage.receptance(omega=...)"))
+        return _checks.finite_tree(out, "Carriage.receptance(...)")
+
+    def _modal_stiffness(self, omega):
         w = _cplx(omega)
         axial = -w * w * _cplx(self.mass) + 1j * w * _cplx(self.axial_damping)
         pitch = (
@@ -252,9 +291,8 @@ class Carriage(eqx.Module):
         )
         return axial, pitch
 
-    def receptance(self, omega) -> list[list[Complex[Array, ...]]]:
-        """Receptance over (x_n, x_2, x_3) per axial force at those points (m/N), as entries."""
-        axial, pitch = self.modal_stiffness(omega)
+    def _receptance(self, omega):
+        axial, pitch = self._modal_stiffness(omega)
         ya, yp = recip(axial), recip(pitch)
         h = [_cplx(x) for x in (self.nut_height, self.scale_height, self.tool_height)]
         return [[ya + yp * (h[i] * h[j]) for j in range(3)] for i in range(3)]
@@ -267,4 +305,8 @@ class NutJoint(eqx.Module):
     damping: Float[Array, ""] = _checks.nonnegative_field("NutJoint(damping=...)", default=0.0)
 
     def dynamic_stiffness(self, omega):
+        """``k_ja + iωc_ja`` at finite angular frequencies ``omega`` (rad/s)."""
+        return self._dynamic_stiffness(_omega(omega, "NutJoint.dynamic_stiffness(omega=...)"))
+
+    def _dynamic_stiffness(self, omega):
         return spring_stiffness(self.stiffness, self.damping, omega)

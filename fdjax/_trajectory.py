@@ -27,7 +27,6 @@ another. Units are SI: m, m/s, m/s², m/s³, s.
 from __future__ import annotations
 
 import math
-import numbers
 
 import equinox as eqx
 import jax
@@ -35,7 +34,16 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from ._checks import check, finite, finite_output, is_concrete, nonnegative, positive
+from ._checks import (
+    check,
+    concrete_float,
+    finite,
+    finite_output,
+    is_concrete,
+    nonnegative,
+    positive,
+    static_int,
+)
 
 __all__ = ["Trajectory", "concatenate", "jerk_limited", "reciprocating"]
 
@@ -142,15 +150,32 @@ class Trajectory(eqx.Module):
         t = jnp.asarray(t)
         if jnp.issubdtype(t.dtype, jnp.complexfloating):
             raise ValueError(f"`Trajectory.evaluate(t=...)` must be real, got dtype {t.dtype}")
-        return _evaluate(self, t.astype(jnp.float64))
+        t = finite(t.astype(jnp.float64), "Trajectory.evaluate(t=...)")
+        return _evaluate(self, t)
 
     def sample(self, t: ArrayLike) -> Float[Array, "*t 3"]:
         """(r, ṙ, r̈) at times ``t`` stacked on a last axis of size 3, e.g. a simulation input.
 
         For n samples at a step dt use ``t = dt * jnp.arange(n)``.
         """
-        r, v, a, _ = self.evaluate(t)
+        t = jnp.asarray(t)
+        if jnp.issubdtype(t.dtype, jnp.complexfloating):
+            raise ValueError(f"`Trajectory.sample(t=...)` must be real, got dtype {t.dtype}")
+        t = finite(t.astype(jnp.float64), "Trajectory.sample(t=...)")
+        r, v, a, _ = _evaluate(self, t)
         return jnp.stack([r, v, a], axis=-1)
+
+    def position_range(self) -> tuple[Float[Array, ""], Float[Array, ""]]:
+        r"""(min r, max r): the exact extremes of the position over the whole motion (m).
+
+        On segment i, r is the cubic r_i + v_i τ + a_i τ²/2 + j_i τ³/6 on τ ∈ [0, h_i], so its
+        extremes lie at the knots or where the velocity v_i + a_i τ + j_i τ²/2 vanishes inside
+        the segment.  Those roots are taken in the cancellation-free form τ = q/A, C/q with
+        A = j_i/2, B = a_i, C = v_i, q = −(B + sign(B)√(B² − 4AC))/2 (one root when j_i = 0).
+        Before t = 0 and after T the motion rests at r0 and r(T), both knots.  O(k), fixed
+        shapes: jit-, vmap- and grad-safe, e.g. to check Y₀ + r(t) against a drive's travel.
+        """
+        return _position_range(self)
 
 
 def _step(state, seg):
@@ -194,19 +219,34 @@ def _evaluate(traj: Trajectory, t: Float[Array, "*t"]):
     return r, v * moving, a * moving, ji * moving
 
 
+@eqx.filter_jit
+def _position_range(traj: Trajectory):
+    rk, vk, ak = _knot_states(traj)
+    h = jnp.diff(traj.t_knots)
+    r, v, a, j = rk[:-1], vk[:-1], ak[:-1], traj.jerk
+    # Roots of (j/2) τ² + a τ + v = 0, without cancellation; a non-real or out-of-segment
+    # root is replaced by τ = 0 (the knot, already a candidate).
+    A, B, C = j / 2, a, v
+    disc = B * B - 4 * A * C
+    real = disc >= 0
+    # √disc with a finite derivative at disc = 0 (a double root: the velocity touches zero)
+    sqrt_disc = jnp.where(disc > 0, jnp.sqrt(jnp.where(disc > 0, disc, 1.0)), 0.0)
+    q = -0.5 * (B + jnp.where(B >= 0, 1.0, -1.0) * sqrt_disc)
+    safe_q = jnp.where(q != 0, q, 1.0)
+    safe_A = jnp.where(A != 0, A, 1.0)
+    roots = jnp.stack([
+        jnp.where(real & (A != 0), q / safe_A, 0.0),
+        jnp.where(real & (q != 0), C / safe_q, 0.0),
+    ])
+    tau = jnp.where((roots > 0) & (roots < h), roots, 0.0)
+    r_roots = r + tau * (v + tau * (a / 2 + tau * j / 6))
+    candidates = jnp.concatenate([rk, r_roots.reshape(-1)])
+    return jnp.min(candidates), jnp.max(candidates)
+
+
 def _scalar(value, where: str) -> float:
     """A concrete real scalar as a Python float (the profile's structure is static)."""
-    if not is_concrete(value):
-        raise ValueError(
-            f"`{where}` must be a concrete number (the segment durations are computed in Python "
-            "when the trajectory is built), got a traced value; build the trajectory outside jit"
-        )
-    arr = np.asarray(value)
-    if not np.isrealobj(arr):
-        raise ValueError(f"`{where}` must be real, got dtype {arr.dtype}")
-    if arr.shape != ():
-        raise ValueError(f"`{where}` must be a scalar, got shape {arr.shape}")
-    return float(arr)
+    return concrete_float(value, where)
 
 
 def _double_s_durations(h: float, v: float, a: float, j: float) -> tuple[float, float, float]:
@@ -271,19 +311,16 @@ def jerk_limited(
     **Returns:** a ``Trajectory`` with 8 segments (zero-length ones where a phase is absent), of
     duration T + ``dwell``, ending at ``start + distance``.
     """
-    d = _scalar(distance, "jerk_limited(distance=...)")
-    finite(d, "jerk_limited(distance=...)")
+    d = finite(_scalar(distance, "jerk_limited(distance=...)"), "jerk_limited(distance=...)")
     v = positive(_scalar(v_max, "jerk_limited(v_max=...)"), "jerk_limited(v_max=...)")
     a = positive(_scalar(a_max, "jerk_limited(a_max=...)"), "jerk_limited(a_max=...)")
     j = positive(_scalar(j_max, "jerk_limited(j_max=...)"), "jerk_limited(j_max=...)")
-    r0 = _scalar(start, "jerk_limited(start=...)")
-    finite(r0, "jerk_limited(start=...)")
-    rest = _scalar(dwell, "jerk_limited(dwell=...)")
-    nonnegative(rest, "jerk_limited(dwell=...)")
+    r0 = finite(_scalar(start, "jerk_limited(start=...)"), "jerk_limited(start=...)")
+    rest = nonnegative(_scalar(dwell, "jerk_limited(dwell=...)"), "jerk_limited(dwell=...)")
 
     tj, tc, tv = _double_s_durations(abs(d), v, a, j)
     durations = np.array([tj, tc, tj, tv, tj, tc, tj, rest], dtype=np.float64)
-    finite_output(durations, "jerk_limited(...)")
+    durations = finite_output(durations, "jerk_limited(...)")
     s = float(np.sign(d))
     jerks = s * j * np.array([1.0, 0.0, -1.0, 0.0, -1.0, 0.0, 1.0, 0.0])
     t_knots = np.concatenate([[0.0], np.cumsum(durations)])
@@ -372,17 +409,14 @@ def reciprocating(
     - ``dwell``: rest after each stroke in s.
     - ``start``: initial (and final) position in m.
     """
-    if isinstance(cycles, bool) or not isinstance(cycles, numbers.Integral) or cycles < 1:
-        raise ValueError(f"`reciprocating(cycles=...)` must be an integer ≥ 1, got {cycles!r}")
+    cycles = static_int(cycles, "reciprocating(cycles=...)", 1)
     names = {"stroke": stroke, "v_max": v_max, "a_max": a_max, "j_max": j_max}
     vals = {k: _scalar(x, f"reciprocating({k}=...)") for k, x in names.items()}
-    finite(vals["stroke"], "reciprocating(stroke=...)")
+    vals["stroke"] = finite(vals["stroke"], "reciprocating(stroke=...)")
     for k in ("v_max", "a_max", "j_max"):
-        positive(vals[k], f"reciprocating({k}=...)")
-    rest = _scalar(dwell, "reciprocating(dwell=...)")
-    nonnegative(rest, "reciprocating(dwell=...)")
-    r0 = _scalar(start, "reciprocating(start=...)")
-    finite(r0, "reciprocating(start=...)")
+        vals[k] = positive(vals[k], f"reciprocating({k}=...)")
+    rest = nonnegative(_scalar(dwell, "reciprocating(dwell=...)"), "reciprocating(dwell=...)")
+    r0 = finite(_scalar(start, "reciprocating(start=...)"), "reciprocating(start=...)")
 
     limits = (vals["v_max"], vals["a_max"], vals["j_max"])
     out = jerk_limited(vals["stroke"], *limits, start=r0, dwell=rest)

@@ -4,6 +4,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
 import pytest
 
 import fdjax
@@ -78,24 +79,91 @@ def test_update_model_bad_input(drive):
         ModalData([100.0, 200.0], [0.05], [-90.0])
 
 
-def test_identified_modes_agree_with_eigen_analysis(drive):
-    """Two independent routes to the same modes: a multi-mode fit of the exact FRF h21
-    (identify_modes) and the eigen-analysis of the FE twin (drive_modes)."""
-    pos = np.array([0.1, 0.4])
-    f = np.geomspace(10.0, 2500.0, 2000)
-    H = np.asarray(drive.frf(pos, f))[:, :, 1, 0]
-    # 7 terms: the lowest (ζ ≈ 1, below 2 Hz) absorbs the rigid-body background
-    fit = fdjax.identify_modes_batched(f, H, 7)
+# The identification's grid: 10 Hz–2 kHz, the band in which the FE twin is verified (0.5 %,
+# test_statespace); its lowest flexible modes are Table 1's 49/95/131 Hz, heavily damped
+# (ζ 0.08–0.14) and overlapping, and its five modes below 2 kHz are fitted with 7 terms: one for
+# the twin's 2.42 kHz mode just above the band and one (ζ ≈ 1, below 1 Hz) that absorbs the
+# damped rigid body's real pole at −c_eq/J_eq = −7.04 rad/s (1.12 Hz), which the fit's
+# rigid-body terms c₀/s² + c₁/s cannot represent.
+FIT_FREQ = np.geomspace(10.0, 2000.0, 2000)
+FIT_POSITIONS = np.array([0.1, fdjax.TABLE_1_POSITION_M, 0.4])
+# Vector-fitting starts (vf_iterations, vf_extra_modes).  The fit is a non-convex least-squares
+# problem and that spare ζ ≈ 1 term makes its landscape rough: from one start it lands, at
+# round-off-dependent positions and grids, in a local minimum where the spare term sits inside
+# the band or a mode is lost (measured: 14 of 48 single fits over 8 grids × 2 positions × 3
+# starts, e.g. the default start at 0.1 m on 10–2500 Hz: the spare term at 12.3 Hz, ζ₁ +8.7 %,
+# fit error 7.2e-3).  All starts minimise the same objective, so the best of three by fit
+# error is that objective's better minimum (16 of 16 over the same grids).
+FIT_STARTS = ((10, 3), (5, 3), (20, 4))
+# Relative weighted RMS fit error of the good minimum: measured 1.2e-5 (0.1 m), 2.4e-5 (0.4 m);
+# the local minima above have ≥ 2.9e-3.
+FIT_ERROR_MAX = 1e-4
+
+
+@pytest.fixture(scope="module")
+def identified(drive):
+    """The best of FIT_STARTS per position (ModalFit with a leading position axis)."""
+    H = np.asarray(drive.frf(FIT_POSITIONS, FIT_FREQ))[:, :, 1, 0]
+    fits = [
+        fdjax.identify_modes_batched(FIT_FREQ, H, 7, vf_iterations=i, vf_extra_modes=e,
+                                     max_steps=1000, throw=False)
+        for i, e in FIT_STARTS
+    ]
+    best = np.argmin(np.stack([np.asarray(f.fit_error) for f in fits]), axis=0)
+
+    def pick(*xs):  # per position, that position's entry of the best start's fit
+        return jnp.stack([xs[b][p] for p, b in enumerate(best)])
+
+    fit = jax.tree_util.tree_map(pick, *fits)
+    # The good minimum, converged (in it the spare term's valley is flat: 200–350 LM steps).
+    assert np.all(np.asarray(fit.fit_error) < FIT_ERROR_MAX), np.asarray(fit.fit_error)
+    assert np.all(np.asarray(fit.result == optx.RESULTS.successful))
+    return fit
+
+
+def _exact_poles(drive, pos, start):
+    """Poles of the exact (continuous) drive: zeros of 1/h21(ω) in complex ω by Newton from
+    ``start`` (rad/s, per position and mode), and the last relative Newton step."""
+
+    def one(y, lam):
+        g = lambda w: 1.0 / drive.receptance(y, w)[1, 0]  # noqa: E731
+        dg = jax.grad(g, holomorphic=True)
+        step = lambda w: w - g(w) / dg(w)  # noqa: E731
+        w = jax.lax.fori_loop(0, 30, lambda _, w: step(w), lam / 1j)
+        return 1j * w, jnp.abs(step(w) - w) / jnp.abs(w)
+
+    return jax.jit(jax.vmap(jax.vmap(one, (None, 0)), (0, 0)))(pos, start)
+
+
+def test_identified_modes_agree_with_eigen_analysis(drive, identified):
+    """Three routes to the same modes: a multi-mode fit of the exact FRF h21 (identify_modes),
+    the eigen-analysis of the FE twin (drive_modes) and Newton on the exact model's poles."""
+    pos = FIT_POSITIONS[[0, 2]]
+    fit = jax.tree_util.tree_map(lambda x: x[np.array([0, 2])], identified)
     model = drive_modes(drive, pos, n_modes=6)
-    below = slice(0, 5)  # the FE twin is verified within 0.5 % below 2 kHz (test_statespace)
-    ff = np.asarray(fit.frequency_hz)[:, 1:][:, below]
-    fm = np.asarray(model.frequency_hz)[:, below]
+    below = slice(0, 5)  # the five modes below 2 kHz; fit index 0 is the spare ζ ≈ 1 term
+    ff, zf, pf = (np.asarray(x)[:, 1:6] for x in (fit.frequency_hz, fit.damping, fit.phase_deg))
+    fm, zm, pm = (np.asarray(x)[:, below] for x in (model.frequency_hz, model.damping,
+                                                     model.phase_deg))
+    lam, last = _exact_poles(drive, jnp.asarray(pos), model.poles[:, below])
+    assert float(jnp.max(last)) < 1e-12  # Newton converged
+    fe, ze = np.abs(np.asarray(lam)) / (2 * np.pi), -np.real(lam) / np.abs(lam)
+
+    # the fit against the exact poles: measured ≤ 4.6e-5 (f) and ≤ 3.3e-4 (ζ, the heavily
+    # damped, overlapped mode 1); a residual fit error of ~2e-5 moves the broad mode 1 most
+    np.testing.assert_allclose(ff, fe, rtol=2e-4)
+    np.testing.assert_allclose(zf, ze, rtol=1e-3)
+    # the twin against the exact poles: its 12-element discretisation, measured ≤ 9.5e-4 (f)
+    # and ≤ 3.1e-3 (ζ of the screw's axial mode, 1493 Hz at 0.1 m); the twin is verified within
+    # 0.5 % in frequency below 2 kHz (test_statespace)
+    np.testing.assert_allclose(fm, fe, rtol=5e-3)
+    np.testing.assert_allclose(zm, ze, rtol=1e-2)
+    # hence fit against twin within the twin's own error
     np.testing.assert_allclose(ff, fm, rtol=5e-3)
-    np.testing.assert_allclose(np.asarray(fit.damping)[:, 1:][:, below],
-                               np.asarray(model.damping)[:, below], rtol=0.02)
-    dphi = np.asarray(fit.phase_deg)[:, 1:][:, below] - np.asarray(model.phase_deg)[:, below]
-    dphi = (dphi + 180) % 360 - 180
-    # measured ≤ 4.5° (the screw's axial mode at 0.4 m, ζ 0.04, 1610 Hz)
+    np.testing.assert_allclose(zf, zm, rtol=1e-2)
+    dphi = (pf - pm + 180) % 360 - 180
+    # measured ≤ 4.8° (the screw's axial mode at 0.4 m, ζ 0.04, 1611 Hz, where the twin's
+    # frequency is 0.08 % low)
     assert np.max(np.abs(dphi)) < 6.0
 
 
@@ -126,7 +194,7 @@ def _check_against_table_1(f_err, z_err, p_err):
         assert lo <= errors[quantity][k] <= hi, (quantity, k + 1, errors[quantity][k])
 
 
-def test_reference_drive_meets_table_1_or_the_documented_shortfall(drive):
+def test_reference_drive_meets_table_1_or_the_documented_shortfall(drive, identified):
     """11 of 15 Table 1 targets met; the four misses are exactly the documented shortfall."""
     T, y = fdjax.TABLE_1, fdjax.TABLE_1_POSITION_M
     # the model's modes paired with the table as update_model pairs them (no steps taken)
@@ -139,11 +207,11 @@ def test_reference_drive_meets_table_1_or_the_documented_shortfall(drive):
     # rtol: eig round-off between two compiled programs
     np.testing.assert_allclose(res.modes.frequency_hz, m.frequency_hz[:5], rtol=1e-9)
     assert np.all(np.asarray(m.prominence[:5]) > 0.05)
-    # cross-check: the same modes identified from the exact FRF (no model internals)
-    f = np.geomspace(10.0, 2000.0, 2000)
-    h = np.asarray(drive.frf([y], f))[0, :, 1, 0]
-    fit = fdjax.identify_modes(f, h, 7)  # + one term (ζ ≈ 1) for the rigid-body background
-    fi, zi, pi = (np.asarray(x)[1:6] for x in (fit.frequency_hz, fit.damping, fit.phase_deg))
+    # cross-check: the same modes identified from the exact FRF (no model internals), the
+    # best of the vector-fitting starts (see FIT_STARTS) at Y_table = 115 mm
+    assert FIT_POSITIONS[1] == y
+    fi, zi, pi = (np.asarray(x)[1, 1:6] for x in (identified.frequency_hz, identified.damping,
+                                                   identified.phase_deg))
     np.testing.assert_allclose(fi, np.asarray(m.frequency_hz[:5]), rtol=5e-3)
     tf, tz, tp = (np.asarray(x) for x in (T.frequency_hz, T.damping, T.phase_deg))
     _check_against_table_1(fi / tf - 1, zi / tz - 1, (pi - tp + 180) % 360 - 180)

@@ -20,8 +20,8 @@ import pytest
 from scipy.optimize import linear_sum_assignment
 
 import fdjax
-from fdjax import _loop
-from fdjax._loop import DoubleLoop, PIDLoop
+from fdjax import DoubleLoop, PIDLoop
+from fdjax._control._blocks import _pade_coefficients
 
 EPS = np.finfo(np.float64).eps
 TWO_PI = 2 * np.pi
@@ -29,6 +29,11 @@ FREQ = np.geomspace(1.0, 4000.0, 2000)
 POSITIONS = np.linspace(0.1, 0.7, 7)
 N_MODES = 4  # a reduced twin: python-control's polynomial margins are exact at this order
 PADE = 4
+SERVO = fdjax.Servo()  # 8 kHz, τ = 2 periods = 250 µs
+CONT = fdjax.Continuous(PADE)  # the continuous loop, delay as its [4/4] Padé approximant
+EXACT = fdjax.Continuous()  # exact delay
+ISC = float(fdjax.reference_drive().screw.ratio)
+FRF_KW = dict(method=EXACT, screw_ratio=ISC)  # an FRF plant: continuous loop, i_sc given
 
 PEAK = dict(K=0.5, omega=TWO_PI * 115.0, xi=0.5, phi=np.radians(-75.0))
 NOTCH = dict(omega=TWO_PI * 1190.0, zeta_n=0.05, zeta_d=0.5)
@@ -73,7 +78,7 @@ def ss_of(tf):
 def control_loops(name, loop, ss, n):
     """(L_inner or None, L_outer, closed loop r → x2) in python-control."""
     A, B, C, D, Cv = (np.asarray(x) for x in (ss.A, ss.B, ss.C, ss.D, ss.C_velocity))
-    tau, k = float(loop.tau), float(loop.k_motor)
+    tau, k = SERVO.tau, float(SERVO.k_motor)
     delay = ss_of(control.tf(*control.pade(tau, n)))
     if name == "pid":
         kp, ki, kd, wd = (float(x) for x in (loop.kp, loop.ki, loop.kd, loop.wd))
@@ -82,7 +87,8 @@ def control_loops(name, loop, ss, n):
         plant = control.ss(A, B[:, :1], C[1:2], D[1:2, :1])
         L = plant * delay * k * pid
         return None, L, control.feedback(L, 1)
-    kp, kv, ki, isc = (float(x) for x in (loop.kp, loop.kv, loop.ki, loop.i_sc))
+    kp, kv, ki = (float(x) for x in (loop.kp, loop.kv, loop.ki))
+    isc = ISC
     G = delay * k * ss_of(control.tf([kv, kv * ki], [1, 0]))
     if name == "double+mcm":
         peak, notch = mcm_tf()
@@ -136,8 +142,8 @@ def margin_bounds(sys, ref, mine, eval_err):
 def test_margins_match_python_control(name, twin):
     loop = LOOPS[name]
     L_v, L_p, _ = control_loops(name, loop, twin, PADE)
-    m = _loop.loop_margins(loop, twin, FREQ, pade_order=PADE)
-    pairs = [(L_p, m.outer, "outer")] + ([] if L_v is None else [(L_v, m.inner, "inner")])
+    m = fdjax.loop_margins(loop, twin, FREQ, method=CONT)
+    pairs = [(L_p, m.position, "outer")] + ([] if L_v is None else [(L_v, m.speed, "inner")])
     for sys, mm, which in pairs:
         ref = control.stability_margins(sys)
         w_ref = np.sort(np.asarray(ref[3:]))
@@ -171,7 +177,7 @@ def eig_bounds(A):
 def test_closed_loop_poles_match_python_control(name, twin):
     loop = LOOPS[name]
     *_, cl_ref = control_loops(name, loop, twin, PADE)
-    cl = _loop.closed_loop(loop, twin, pade_order=PADE)
+    cl = fdjax.closed_loop(loop, twin, method=CONT)
     lam, bound = eig_bounds(np.asarray(cl.A))
     lam_ref, bound_ref = eig_bounds(cl_ref.A)
     assert lam.shape == lam_ref.shape
@@ -219,7 +225,8 @@ def test_closed_loop_tracking_frf(name, twin):
     Cv = np.asarray(twin.C_velocity[0])
     if name == "pid":
         loop = PIDLoop(k_ffv=30.0, k_ffa=2.0)
-        kp, ki, kd, wd, k = (float(x) for x in (loop.kp, loop.ki, loop.kd, loop.wd, loop.k_motor))
+        kp, ki, kd, wd = (float(x) for x in (loop.kp, loop.ki, loop.kd, loop.wd))
+        k = float(SERVO.k_motor)
         C = kp + ki / s + kd * s / (1 + s / wd)
 
         def expected(mats):
@@ -228,8 +235,8 @@ def test_closed_loop_tracking_frf(name, twin):
             return g_x * k * D * (C + 30.0 * s + 2.0 * s**2) / (1 + C * k * D * g_x)
     else:
         loop = DoubleLoop(mcm=MCM, k_ffv=0.9, k_ffa=2.5)
-        kp, kv, ki, k, isc = (float(x) for x in
-                              (loop.kp, loop.kv, loop.ki, loop.k_motor, loop.i_sc))
+        kp, kv, ki = (float(x) for x in (loop.kp, loop.kv, loop.ki))
+        k, isc = float(SERVO.k_motor), ISC
         peak, notch = mcm_tf()
         M = response(peak, TWO_PI * f) * response(notch, TWO_PI * f)
 
@@ -243,7 +250,7 @@ def test_closed_loop_tracking_frf(name, twin):
             out = g_x * k * D * (M * kv * (1 + ki / s) * (kp + 0.9 * s) + 2.5 * s**2)
             return out / ((1 + L_v) * (1 + L_p))
 
-    cl = _loop.closed_loop(loop, twin, pade_order=PADE)
+    cl = fdjax.closed_loop(loop, twin, method=CONT)
     H = np.asarray(cl.frf(f))[:, 1]
     # the inputs (r, ṙ, r̈) are separate channels: a reference r(t) drives them as (1, s, s²)
     got = H[:, 0] + s * H[:, 1] + s**2 * H[:, 2]
@@ -267,17 +274,17 @@ def test_exact_delay_is_the_pade_limit(frf):
     The gain margins converge to the exact-delay ones as the order grows (on the drive's FRF)."""
     loop = LOOPS["double"]
     H = frf[-1]
-    margins = lambda n: (lambda ol: (_loop.stability_margins(FREQ, ol.inner),
-                                     _loop.stability_margins(FREQ, ol.outer)))(
-        _loop.open_loop(loop, H, FREQ, pade_order=n))
+    margins = lambda n: (lambda ol: (fdjax.stability_margins(FREQ, ol.speed),
+                                     fdjax.stability_margins(FREQ, ol.position)))(
+        fdjax.open_loop(loop, H, FREQ, method=fdjax.Continuous(n), screw_ratio=ISC))
     exact = margins(None)
     w = TWO_PI * float(exact[0].gain_crossover_hz)
     errors = []
     for n in (2, 6):
         m = margins(n)
-        num, den = control.pade(float(loop.tau), n)
+        num, den = control.pade(SERVO.tau, n)
         pade_phase = np.angle(np.polyval(num, 1j * w) / np.polyval(den, 1j * w)
-                              * np.exp(1j * w * float(loop.tau)))
+                              * np.exp(1j * w * SERVO.tau))
         np.testing.assert_allclose(m[0].gain_crossover_hz, exact[0].gain_crossover_hz, rtol=1e-13)
         # the grid interpolates the phase between samples: the difference of two phases that
         # differ by a smooth function is exact to its curvature × Δu² ≪ 1e-9 rad here
@@ -296,10 +303,10 @@ def test_pade_realisation_matches_control():
     for n in (1, 3, PADE, 8):
         num, den = control.pade(tau, n)
         den = np.asarray(den, float)
-        c = _loop._pade_coefficients(n)
+        c = _pade_coefficients(n)
         np.testing.assert_allclose(c / c[0], den[::-1] / den[-1] / tau ** np.arange(n + 1),
                                    rtol=1e-13)
-        sys = _loop.pade(tau, n)
+        sys = fdjax.pade(tau, n)
         A, B, C, D = (np.asarray(x) for x in (sys.A, sys.B, sys.C, sys.D))
         got = np.array([(C @ np.linalg.solve(1j * x * np.eye(n) - A, B) + D).item() for x in w])
         expect = np.polyval(num, 1j * w) / np.polyval(den, 1j * w)
@@ -315,30 +322,30 @@ def test_open_loops_follow_the_equations(frf):
     H = np.asarray(frf)
     s = 2j * np.pi * FREQ
     loop = LOOPS["double+mcm"]
-    kp, kv, ki, k, isc, tau = (float(x) for x in
-                               (loop.kp, loop.kv, loop.ki, loop.k_motor, loop.i_sc, loop.tau))
+    kp, kv, ki = (float(x) for x in (loop.kp, loop.kv, loop.ki))
+    k, isc, tau = float(SERVO.k_motor), ISC, SERVO.tau
     peak, notch = mcm_tf()
     G = (response(peak, TWO_PI * FREQ) * response(notch, TWO_PI * FREQ) * kv * (1 + ki / s)
          * k * np.exp(-s * tau))
     L_v = G * isc * s * H[..., 0, 0]
     L_p = kp * H[..., 1, 0] * G / (1 + L_v)
-    ol = _loop.open_loop(loop, frf, FREQ)
-    np.testing.assert_allclose(ol.inner, L_v, rtol=1e-12)
-    np.testing.assert_allclose(ol.outer, L_p, rtol=1e-12)
+    ol = fdjax.open_loop(loop, frf, FREQ, **FRF_KW)
+    np.testing.assert_allclose(ol.speed, L_v, rtol=1e-12)
+    np.testing.assert_allclose(ol.position, L_p, rtol=1e-12)
     pid = LOOPS["pid"]
     kp, ki, kd, wd = (float(x) for x in (pid.kp, pid.ki, pid.kd, pid.wd))
     C = kp + ki / s + kd * s / (1 + s / wd)
-    ol = _loop.open_loop(pid, frf, FREQ)
-    assert ol.inner is None
-    np.testing.assert_allclose(ol.outer, C * float(pid.k_motor) * np.exp(-s * tau) * H[..., 1, 0],
-                               rtol=1e-12)
+    ol = fdjax.open_loop(pid, frf, FREQ, **FRF_KW)
+    assert ol.speed is None
+    np.testing.assert_allclose(ol.position, C * k * np.exp(-s * tau) * H[..., 1, 0], rtol=1e-12)
+    np.testing.assert_allclose(ol.plant_input, ol.position, rtol=1e-15)  # one loop
 
 
 def test_grid_margins_converge_at_second_order(twin):
     """Margins from a sampled FRF (no model) approach the refined ones as the grid is refined
     (log-frequency interpolation: O(Δu²) per crossing)."""
     loop = LOOPS["double"]
-    exact = _loop.loop_margins(loop, twin, FREQ, pade_order=PADE)
+    exact = fdjax.loop_margins(loop, twin, FREQ, method=CONT)
     err = []
     for n in (250, 4000):
         f = np.geomspace(1.0, 4000.0, n)
@@ -347,11 +354,11 @@ def test_grid_margins_converge_at_second_order(twin):
         X = np.linalg.solve(2j * np.pi * f[:, None, None] * np.eye(A.shape[0]) - A, B)
         H = C @ X + D
         H[:, 0, 0] = (X[:, :, 0] @ Cv[0]) / (2j * np.pi * f)
-        g = _loop.loop_margins(loop, H, f, pade_order=PADE)
+        g = fdjax.loop_margins(loop, H, f, method=CONT, screw_ratio=ISC)
         rel = lambda a, k: abs(float(getattr(getattr(g, a), k))
                                / float(getattr(getattr(exact, a), k)) - 1)
         err.append([rel(a, "gain_crossover_hz") + rel(a, "gain_margin")
-                    for a in ("inner", "outer")])
+                    for a in ("speed", "position")])
 
     ratio = np.array(err[0]) / np.array(err[1])
     # 16× finer: 256 for an exact second-order error; the crossings' positions relative to the
@@ -364,21 +371,22 @@ def test_vmap_over_positions_equals_loop(drive, frf):
     loop = LOOPS["double"]
     twins = [fdjax.state_space(drive, p, n_modes=N_MODES) for p in POSITIONS[::3]]
     batch = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *twins)
-    mb = jax.vmap(lambda ss: _loop.loop_margins(loop, ss, FREQ, pade_order=PADE))(batch)
+    mb = jax.vmap(lambda ss: fdjax.loop_margins(loop, ss, FREQ, method=CONT))(batch)
     for i, ss in enumerate(twins):
-        m = _loop.loop_margins(loop, ss, FREQ, pade_order=PADE)
+        m = fdjax.loop_margins(loop, ss, FREQ, method=CONT)
         for a, b in zip(jax.tree_util.tree_leaves(m), jax.tree_util.tree_leaves(mb)):
             np.testing.assert_allclose(b[i], a, rtol=1e-10)
     # a stacked StateSpace is mapped over inside
-    ol = _loop.open_loop(loop, batch, FREQ)
+    ol = fdjax.open_loop(loop, batch, FREQ, method=CONT)
     for i, ss in enumerate(twins):
-        np.testing.assert_allclose(ol.outer[i], _loop.open_loop(loop, ss, FREQ).outer, rtol=1e-12)
+        one = fdjax.open_loop(loop, ss, FREQ, method=CONT)
+        np.testing.assert_allclose(ol.position[i], one.position, rtol=1e-12)
     # FRF arrays: a batch of positions equals one position at a time
-    mf = _loop.loop_margins(loop, frf, FREQ)
+    mf = fdjax.loop_margins(loop, frf, FREQ, **FRF_KW)
     for i in (0, 6):
-        ol = _loop.open_loop(loop, frf[i], FREQ)
-        for m, L in ((mf.inner, ol.inner), (mf.outer, ol.outer)):
-            one = _loop.stability_margins(FREQ, L)
+        ol = fdjax.open_loop(loop, frf[i], FREQ, **FRF_KW)
+        for m, L in ((mf.speed, ol.speed), (mf.position, ol.position)):
+            one = fdjax.stability_margins(FREQ, L)
             for a, b in zip(jax.tree_util.tree_leaves(one), jax.tree_util.tree_leaves(m)):
                 np.testing.assert_allclose(b[i], a, rtol=1e-12)
 
@@ -392,9 +400,9 @@ def test_grad_of_margins_matches_finite_differences(twin):
 
     def margins(x):
         kp, kv, ki = x
-        m = _loop.loop_margins(DoubleLoop(kp=kp, kv=kv, ki=ki), twin, FREQ, pade_order=PADE)
-        return jnp.stack([m.outer.gain_margin, m.inner.phase_margin_deg, m.inner.gain_margin,
-                          m.outer.phase_margin_deg, m.inner.modulus_margin])
+        m = fdjax.loop_margins(DoubleLoop(kp=kp, kv=kv, ki=ki), twin, FREQ, method=CONT)
+        return jnp.stack([m.position.gain_margin, m.speed.phase_margin_deg, m.speed.gain_margin,
+                          m.position.phase_margin_deg, m.speed.modulus_margin])
 
     x0 = jnp.array([float(base.kp), float(base.kv), float(base.ki)])
     J = np.asarray(jax.jacfwd(margins)(x0))
@@ -415,11 +423,11 @@ def test_grad_of_loop_gain_wrt_mcm(frf):
 
     def mag(K):
         mcm = fdjax.MCM(fdjax.PeakFilter(K, PEAK["omega"], PEAK["xi"], PEAK["phi"]))
-        return jnp.abs(_loop.open_loop(DoubleLoop(mcm=mcm), frf[2], FREQ).inner[k])
+        return jnp.abs(fdjax.open_loop(DoubleLoop(mcm=mcm), frf[2], FREQ, **FRF_KW).speed[k])
 
     g = jax.grad(mag)(0.5)
     # L_v = L0 (1 + K q): |L0 (1 + K q)|' = Re(conj(L) L0 q)/|L|
-    L0 = np.asarray(_loop.open_loop(DoubleLoop(), frf[2], FREQ).inner[k])
+    L0 = np.asarray(fdjax.open_loop(DoubleLoop(), frf[2], FREQ, **FRF_KW).speed[k])
     w, xi, phi = TWO_PI * FREQ[k], PEAK["xi"], PEAK["phi"]
     s, wc = 1j * w, PEAK["omega"]
     q = s * (s * np.cos(phi) + wc * np.sin(phi)) / (s * s + 2 * xi * wc * s + wc * wc)
@@ -429,20 +437,22 @@ def test_grad_of_loop_gain_wrt_mcm(frf):
 
 # ---------------------------------------------------------------- defaults and stability
 def test_default_gains_stable_over_the_travel(drive, frf):
-    for tau in (125e-6, 250e-6):
-        for loop in (DoubleLoop(tau=tau), PIDLoop(tau=tau)):
-            st = _loop.check_stability(loop, drive, position_m=POSITIONS)
-            assert np.all(np.asarray(st.stable)), st.message
-            assert "stable at position 0.7 m" in st.message
-    m = _loop.loop_margins(DoubleLoop(), frf, FREQ)
+    for d in (1, 2):  # τ = 125 µs, 250 µs at 8 kHz
+        for loop in (DoubleLoop(), PIDLoop()):
+            for method in (fdjax.SampledData(), fdjax.Continuous()):
+                st = fdjax.check_stability(loop, drive, position_m=POSITIONS, method=method,
+                                           servo=fdjax.Servo(delay_samples=d))
+                assert np.all(np.asarray(st.stable)), st.message
+                assert "stable at table position 0.7 m" in st.message
+    m = fdjax.loop_margins(DoubleLoop(), frf, FREQ, **FRF_KW)
     # DoubleLoop docstring: speed loop 34.5 Hz, GM 13.5, PM 75°; position loop 7.0 Hz, GM 7.3,
     # PM 84°, MM 0.83 (each within 1 % over the travel)
-    assert np.min(m.inner.gain_margin) > 13 and np.min(m.inner.phase_margin_deg) > 74
-    assert 30 < np.min(m.inner.gain_crossover_hz) and np.max(m.inner.gain_crossover_hz) < 40
-    assert np.min(m.outer.gain_margin) > 7 and np.min(m.outer.phase_margin_deg) > 80
-    assert np.min(m.outer.modulus_margin) > 0.8
-    assert 5 < np.min(m.outer.gain_crossover_hz) and np.max(m.outer.gain_crossover_hz) < 10
-    p = _loop.loop_margins(PIDLoop(), frf, FREQ).outer
+    assert np.min(m.speed.gain_margin) > 13 and np.min(m.speed.phase_margin_deg) > 74
+    assert 30 < np.min(m.speed.gain_crossover_hz) and np.max(m.speed.gain_crossover_hz) < 40
+    assert np.min(m.position.gain_margin) > 7 and np.min(m.position.phase_margin_deg) > 80
+    assert np.min(m.position.modulus_margin) > 0.8
+    assert 5 < np.min(m.position.gain_crossover_hz) and np.max(m.position.gain_crossover_hz) < 10
+    p = fdjax.loop_margins(PIDLoop(), frf, FREQ, **FRF_KW).position
     # soft, as the paper's baseline: crossover 1.6 Hz, PM 53°, GM 9.0 → 8.6 over the travel
     assert np.max(p.gain_crossover_hz) < 2 and np.min(p.phase_margin_deg) > 50
     assert np.min(p.gain_margin) > 8.5
@@ -456,17 +466,17 @@ def test_unstable_gain_is_reported_with_its_position(drive, frf):
     to 8.6 at 0.7 m): unstable towards the screw end only.  Nyquist (gain margin < 1) and the
     poles agree, and the result names the position."""
     loop = PIDLoop(kp=8.8 * 1.5e3, ki=8.8 * 5.0e3, kd=8.8 * 100.0)
-    m = _loop.loop_margins(loop, frf, FREQ)
-    st = _loop.check_stability(loop, drive, position_m=POSITIONS)
+    m = fdjax.loop_margins(loop, frf, FREQ, **FRF_KW)
+    st = fdjax.check_stability(loop, drive, position_m=POSITIONS, method=EXACT)
     unstable_poles = ~np.asarray(st.stable)
     assert unstable_poles[-1] and not unstable_poles[0]
-    np.testing.assert_array_equal(unstable_poles, np.asarray(m.outer.gain_margin) < 1)
-    assert "closed loop unstable at position 0.7 m" in st.message
-    one = _loop.check_stability(loop, fdjax.state_space(drive, 0.7))  # the twin given directly
-    assert not bool(one.stable) and float(one.spectral_abscissa) > 0
+    np.testing.assert_array_equal(unstable_poles, np.asarray(m.position.gain_margin) < 1)
+    assert "closed loop unstable at table position 0.7 m" in st.message
+    one = fdjax.check_stability(loop, fdjax.state_space(drive, 0.7), method=EXACT)  # the twin
+    assert not bool(one.stable) and float(one.growth_rate) > 0
     np.testing.assert_allclose(one.poles, st.poles[-1], rtol=1e-10)
-    with pytest.raises(RuntimeError, match="unstable at position 0.7 m"):
-        _loop.check_stability(loop, drive, position_m=0.7, throw=True)
+    with pytest.raises(RuntimeError, match="unstable at table position 0.7 m"):
+        fdjax.check_stability(loop, drive, position_m=0.7, method=EXACT, throw=True)
 
 
 def test_default_acceleration_feedforward_is_the_rigid_body_inertia(drive):
@@ -478,9 +488,7 @@ def test_default_acceleration_feedforward_is_the_rigid_body_inertia(drive):
     r[2 * n + 3] = float(drive.screw.ratio)  # the carriage follows at i_sc
     J_eq = r @ np.asarray(fe.mass) @ r
     loop = DoubleLoop()
-    np.testing.assert_allclose(float(loop.i_sc), float(drive.screw.ratio), rtol=1e-15)
-    np.testing.assert_allclose(float(loop.k_ffa), J_eq / (float(loop.k_motor) * float(loop.i_sc)),
-                               rtol=2e-3)
+    np.testing.assert_allclose(float(loop.k_ffa), J_eq / (float(SERVO.k_motor) * ISC), rtol=2e-3)
 
 
 # ---------------------------------------------------------------- errors
@@ -491,12 +499,15 @@ def test_default_acceleration_feedforward_is_the_rigid_body_inertia(drive):
          r"`DoubleLoop\(kp=\.\.\.\)` must be finite and positive, got -1"),
         (lambda: DoubleLoop(kv=0.0),
          r"`DoubleLoop\(kv=\.\.\.\)` must be finite and positive, got 0"),
-        (lambda: DoubleLoop(tau=np.nan), r"`DoubleLoop\(tau=\.\.\.\)` must be finite and positive"),
+        (lambda: fdjax.Servo(k_motor=np.nan), r"`Servo\(k_motor=\.\.\.\)` must be finite and pos"),
+        (lambda: fdjax.Servo(delay_samples=0), r"`Servo\(delay_samples=\.\.\.\)` must be an int"),
+        (lambda: fdjax.Servo(period=1.25e-1 * 10), r"`Servo\(period=\.\.\.\)` must be a number"),
+        (lambda: fdjax.Continuous(pade_order=0), r"`Continuous\(pade_order=\.\.\.\)` must be in"),
         (lambda: DoubleLoop(k_ffa=np.inf), r"`DoubleLoop\(k_ffa=\.\.\.\)` must be finite"),
         (lambda: DoubleLoop(ki=[1.0, 2.0]), r"`DoubleLoop\(ki=\.\.\.\)` must be a scalar"),
         (lambda: PIDLoop(wd=-5.0), r"`PIDLoop\(wd=\.\.\.\)` must be finite and positive, got -5"),
-        (lambda: _loop.pade(250e-6, 0), r"`pade\(order=\.\.\.\)` must be in \[1, 16\], got 0"),
-        (lambda: _loop.pade(-1e-4, 3), r"`pade\(tau=\.\.\.\)` must be finite and positive"),
+        (lambda: fdjax.pade(250e-6, 0), r"`pade\(order=\.\.\.\)` must be in \[1, 16\], got 0"),
+        (lambda: fdjax.pade(-1e-4, 3), r"`pade\(tau=\.\.\.\)` must be finite and positive"),
     ],
 )
 def test_bad_parameters(build, match):
@@ -506,25 +517,37 @@ def test_bad_parameters(build, match):
 
 def test_bad_analysis_inputs(drive, frf):
     loop = LOOPS["double"]
-    with pytest.raises(ValueError, match=r"`loop_margins\(plant=\.\.\.\)` must be an FRF array "
-                                         r"of shape \(\.\.\., n_freq, 3, 2\) with n_freq = 2000"):
-        _loop.loop_margins(loop, frf[:, :10], FREQ)
-    with pytest.raises(ValueError, match=r"`open_loop\(pade_order=\.\.\.\)` must be an int"):
-        _loop.open_loop(loop, frf, FREQ, pade_order=2.0)
+    with pytest.raises(ValueError, match=r"`loop_margins\(plant=\.\.\.\)` must be a BallScrewDrive "
+                                         r"\(with position_m\), a StateSpace, or an FRF array of "
+                                         r"shape \(\.\.\., n_freq, 3, 2\) with n_freq = 2000"):
+        fdjax.loop_margins(loop, frf[:, :10], FREQ, **FRF_KW)
+    with pytest.raises(ValueError, match=r"`Continuous\(pade_order=\.\.\.\)` must be an int"):
+        fdjax.Continuous(pade_order=2.0)
     with pytest.raises(ValueError, match=r"`loop_margins\(freq_hz=\.\.\.\)` must be strictly"):
-        _loop.loop_margins(loop, frf, FREQ[::-1])
+        fdjax.loop_margins(loop, frf, FREQ[::-1], **FRF_KW)
     with pytest.raises(ValueError, match=r"`open_loop\(plant=\.\.\.\)` must be finite"):
-        _loop.open_loop(loop, frf.at[0, 5, 1, 0].set(jnp.nan), FREQ)
-    with pytest.raises(TypeError, match=r"`open_loop\(plant=\.\.\.\)` takes the drive's FRF"):
-        _loop.open_loop(loop, drive, FREQ)
+        fdjax.open_loop(loop, frf.at[0, 5, 1, 0].set(jnp.nan), FREQ, **FRF_KW)
+    with pytest.raises(ValueError, match=r"`open_loop\(screw_ratio=\.\.\.\)` is required"):
+        fdjax.open_loop(loop, frf, FREQ, method=EXACT)
+    with pytest.raises(ValueError, match=r"`open_loop\(method=\.\.\.\)`: the sampled loop needs the plant in state"):
+        fdjax.open_loop(loop, frf, FREQ, screw_ratio=ISC)
+    with pytest.raises(ValueError, match=r"`loop_margins\(freq_hz=\.\.\.\)` must be below the "
+                                         r"servo's Nyquist frequency 4000 Hz"):
+        fdjax.loop_margins(loop, drive, FREQ, position_m=0.4)
+    with pytest.raises(ValueError, match=r"`open_loop\(position_m=\.\.\.\)` is required"):
+        fdjax.open_loop(loop, drive, FREQ, method=EXACT)
     with pytest.raises(ValueError, match=r"`check_stability\(position_m=\.\.\.\)` is required"):
-        _loop.check_stability(loop, drive)
-    with pytest.raises(ValueError, match=r"frf\(position_m=\.\.\.\)` must be inside the travel"):
-        _loop.check_stability(loop, drive, position_m=0.9)
+        fdjax.check_stability(loop, drive)
+    with pytest.raises(ValueError, match=r"`check_stability\(position_m=\.\.\.\)` must be inside "
+                                         r"the travel \[0.1, 0.7\] m, got 0.9"):
+        fdjax.check_stability(loop, drive, position_m=0.9)
+    with pytest.raises(TypeError, match=r"`check_stability\(controller=\.\.\.\)` must be an fdjax "
+                                        r"controller"):
+        fdjax.check_stability(fdjax.MCM(), drive, position_m=0.3)
     with pytest.raises(TypeError, match=r"`DoubleLoop\(mcm=\.\.\.\)` must be an fdjax.MCM"):
         DoubleLoop(mcm="notch")
     with pytest.raises(ValueError, match=r"`stability_margins\(L=\.\.\.\)` must have shape"):
-        _loop.stability_margins(FREQ, np.ones(5, complex))
+        fdjax.stability_margins(FREQ, np.ones(5, complex))
 
 
 def test_bad_gain_under_jit_raises():
@@ -537,9 +560,9 @@ def test_bad_gain_under_jit_raises():
 def test_fig14_peak_filter_effect(frf, tmp_path):
     from fdjax.plots import plot_peak_filter_effect
 
-    with_pf = _loop.open_loop(LOOPS["double+mcm"], frf, FREQ)
-    without = _loop.open_loop(LOOPS["double"], frf, FREQ)
-    fig = plot_peak_filter_effect(FREQ, POSITIONS, without.inner, with_pf.inner,
+    with_pf = fdjax.open_loop(LOOPS["double+mcm"], frf, FREQ, **FRF_KW)
+    without = fdjax.open_loop(LOOPS["double"], frf, FREQ, **FRF_KW)
+    fig = plot_peak_filter_effect(FREQ, POSITIONS, without.speed, with_pf.speed,
                                   band_hz=(100.0, 145.0))
     assert len(fig.axes) == 4
     fig.savefig(tmp_path / "fig14.png", dpi=60)

@@ -388,7 +388,7 @@ def test_grad_wrt_leaves():
         ),
         (
             lambda: reciprocating(cycles=0),
-            r"`reciprocating\(cycles=\.\.\.\)` must be an integer ≥ 1",
+            r"`reciprocating\(cycles=\.\.\.\)` must be an integer at least 1, got 0",
         ),
         (lambda: reciprocating(cycles=1.5), r"`reciprocating\(cycles=\.\.\.\)` must be an integer"),
         (

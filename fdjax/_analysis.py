@@ -1,0 +1,525 @@
+r"""Loop analysis of any controller around the drive (paper Sec. 4, Figs. 14–15): open loops,
+stability margins of the loop as it runs, closed loops and their stability.
+
+Every function takes the controller (a :class:`fdjax.AbstractController`), the plant, the servo's
+hardware (:class:`fdjax.Servo`) and the loop model ``method``: :class:`fdjax.SampledData`
+(default: the sampled loop as the servo runs it — zero-order-hold plant, backward-difference
+speed, discrete filters, whole-sample delay), :class:`fdjax.Continuous` (exact delay
+e^{−iωτ}, Padé where a realisation is needed) or :class:`fdjax.PadeODE`.
+
+The plant is one of
+
+* a :class:`fdjax.BallScrewDrive` with ``position_m`` (scalar or 1-D): its time-domain twin is
+  built at each position (:func:`fdjax.state_space`), all positions in one compiled program;
+* a :class:`fdjax.StateSpace` (the twin at one position, or a batch of them from ``jax.vmap``);
+* an FRF array (…, n_freq, 3, 2) on ``freq_hz`` (outputs θ1, x2, x3; inputs T1, F3), e.g.
+  ``drive.frf(positions, freq_hz)`` or a measurement, with ``screw_ratio`` (continuous models
+  only: the sampled loop needs the plant in state space).
+
+The open loops are broken at the plant input (``plant_input``), at the speed feedback
+(``speed``, the position loop open) and at the scale (``position``, the speed loop closed);
+see :mod:`fdjax._control._interconnect` for the equations.  Margins follow python-control's
+conventions (:mod:`fdjax._control._margins`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Bool, Complex, Float
+
+from . import _checks
+from ._control._controllers import AbstractController
+from ._control._margins import Margins, grid_margins, model_margins
+from ._control._servo import Servo
+from ._drive import BallScrewDrive
+from ._lti import LTI
+from ._results import RESULTS
+from ._simulation._methods import AbstractLoopModel, SampledData
+from ._statespace import StateSpace, count_modes, state_space
+from ._sweep import map_positions
+
+__all__ = [
+    "OpenLoop",
+    "LoopMargins",
+    "Stability",
+    "open_loop",
+    "loop_margins",
+    "stability_margins",
+    "closed_loop",
+    "check_stability",
+]
+
+_TWO_PI = 2.0 * math.pi
+_LOOPS = ("plant_input", "speed", "position")
+
+
+class OpenLoop(eqx.Module):
+    """Open-loop frequency responses of a controller around a plant.
+
+    Attributes:
+        freq_hz: the frequency grid (Hz), (n_freq,).
+        plant_input: L_u, broken at the plant input (every loop open there), (*batch, n_freq).
+        speed: L_v, broken at the speed feedback with the position loop open; None when the
+            controller closes no speed loop (a PID on the scale).
+        position: L_p, broken at the scale with the speed loop closed; None without a position
+            loop.
+    """
+
+    freq_hz: Float[Array, " freq"]
+    plant_input: Complex[Array, "*batch freq"]
+    speed: Complex[Array, "*batch freq"] | None
+    position: Complex[Array, "*batch freq"] | None
+
+
+class LoopMargins(eqx.Module):
+    """Margins (:class:`fdjax.Margins`) of the loop broken at each of its break points (None
+    where the controller closes no such loop)."""
+
+    plant_input: Margins
+    speed: Margins | None
+    position: Margins | None
+
+
+class Stability(eqx.Module):
+    """Result of :func:`check_stability`.
+
+    Attributes:
+        stable: every closed-loop pole decays (Re s < 0; |z| < 1 for the sampled loop).
+        growth_rate: max Re s over the poles (1/s), s = ln z / T for the sampled loop;
+            negative when stable.
+        min_damping: min over the poles of −Re s/|s| (the least damped pole's ratio).
+        position_m: the table position (m).
+        poles: the closed loop's eigenvalues (s, or z for the sampled loop), least stable first.
+        result: ``RESULTS.successful`` or ``RESULTS.unstable``.
+        discrete: whether ``poles`` are z (static).
+    """
+
+    stable: Bool[Array, "*batch"]
+    growth_rate: Float[Array, "*batch"]
+    min_damping: Float[Array, "*batch"]
+    position_m: Float[Array, "*batch"]
+    poles: Complex[Array, "*batch n"]
+    result: RESULTS
+    discrete: bool = eqx.field(static=True)
+
+    @property
+    def message(self) -> str:
+        """One line per position, e.g. "closed loop unstable at table position 0.7 m: pole at
+        93.7 Hz growing at 16.5 1/s"."""
+        stable = np.atleast_1d(np.asarray(self.stable))
+        pos = np.atleast_1d(np.asarray(self.position_m))
+        g = np.atleast_1d(np.asarray(self.growth_rate))
+        poles = np.asarray(self.poles).reshape(stable.shape[0], -1)
+        lines = []
+        for ok, p, gr, lam in zip(stable, pos, g, poles):
+            w = lam[0]
+            hz = abs(np.angle(w)) / (2 * np.pi * self._period) if self.discrete else (
+                abs(w.imag) / (2 * np.pi)
+            )
+            what = "decaying" if ok else "growing"
+            lines.append(
+                f"closed loop {'stable' if ok else 'unstable'} at table position {p:.4g} m: "
+                f"least stable pole at {hz:.4g} Hz {what} at {abs(gr):.4g} 1/s"
+            )
+        return "\n".join(lines)
+
+    _period: float = eqx.field(static=True, default=math.nan)
+
+
+# ------------------------------------------------------------------------------------ checks
+def _check_controller(controller, fn: str) -> AbstractController:
+    if not isinstance(controller, AbstractController):
+        raise TypeError(
+            f"`{fn}(controller=...)` must be an fdjax controller (DoubleLoop, PIDLoop or a "
+            f"subclass of fdjax.AbstractController), got {type(controller).__name__}"
+        )
+    return controller
+
+
+def _check_servo(servo, fn: str) -> Servo:
+    if not isinstance(servo, Servo):
+        raise TypeError(f"`{fn}(servo=...)` must be an fdjax.Servo, got {type(servo).__name__}")
+    return servo
+
+
+def _check_method(method, fn: str) -> AbstractLoopModel:
+    if not isinstance(method, AbstractLoopModel):
+        raise TypeError(
+            f"`{fn}(method=...)` must be fdjax.SampledData(), fdjax.Continuous() or "
+            f"fdjax.PadeODE(), got {type(method).__name__}"
+        )
+    return method
+
+
+def _twin_modes(drive, n_modes, n_elements, fn):
+    if n_modes is None:
+        return int(count_modes(drive, n_elements=n_elements))
+    if isinstance(n_modes, bool) or not isinstance(n_modes, int | np.integer) or n_modes < 2:
+        raise ValueError(f"`{fn}(n_modes=...)` must be an int ≥ 2, got {n_modes!r}")
+    return int(n_modes)
+
+
+def _plant(plant, position_m, fn: str, *, n_modes=None, n_elements=None, freq_hz=None,
+           screw_ratio=None):
+    """Normalise the plant to ("model", StateSpace | (drive, positions)) or ("frf", H)."""
+    from ._statespace import DEFAULT_ELEMENTS
+
+    n_el = DEFAULT_ELEMENTS if n_elements is None else n_elements
+    if isinstance(plant, BallScrewDrive):
+        if position_m is None:
+            raise ValueError(f"`{fn}(position_m=...)` is required when the plant is a drive")
+        pos = plant._check_positions(position_m)
+        m = _twin_modes(plant, n_modes, n_el, fn)
+        return "drive", (plant, pos, m, int(n_el)), jnp.ndim(position_m) == 0
+    if position_m is not None and isinstance(plant, StateSpace):
+        raise ValueError(f"`{fn}(position_m=...)` is only for a BallScrewDrive or FRF plant")
+    if isinstance(plant, StateSpace):
+        if plant.A.ndim not in (2, 3):
+            raise ValueError(
+                f"`{fn}(plant=...)` must be a StateSpace with A of shape (n, n), or (batch, n, n) "
+                f"from jax.vmap over positions, got A of shape {plant.A.shape}"
+            )
+        return "model", plant, plant.A.ndim == 2
+    H = jnp.asarray(plant)
+    if freq_hz is None or H.ndim < 3 or H.shape[-2:] != (3, 2) or H.shape[-3] != freq_hz.shape[0]:
+        n = "n_freq" if freq_hz is None else f"n_freq = {freq_hz.shape[0]}"
+        raise ValueError(
+            f"`{fn}(plant=...)` must be a BallScrewDrive (with position_m), a StateSpace, or an "
+            f"FRF array of shape (..., n_freq, 3, 2) with {n}, got "
+            f"{type(plant).__name__} of shape {getattr(H, 'shape', None)}"
+        )
+    if not jnp.issubdtype(H.dtype, jnp.complexfloating):
+        raise ValueError(f"`{fn}(plant=...)` must be a complex FRF array, got dtype {H.dtype}")
+    if screw_ratio is None:
+        raise ValueError(
+            f"`{fn}(screw_ratio=...)` is required with an FRF plant: the drive's i_sc = lead/2π "
+            "(m/rad), e.g. `drive.screw.ratio`"
+        )
+    sr = _checks.positive(jnp.asarray(screw_ratio, jnp.float64), f"{fn}(screw_ratio=...)")
+    H = _checks.finite(H.astype(jnp.complex128), f"{fn}(plant=...)")
+    pos = jnp.full(H.shape[:-3], jnp.nan) if position_m is None else jnp.broadcast_to(
+        jnp.asarray(position_m, jnp.float64), H.shape[:-3])
+    return "frf", (H, sr, pos), H.ndim == 3
+
+
+def _map_twins(kind, p, body, has_eig=False):
+    """``body(twin)`` for each twin: a drive's positions, a StateSpace batch, or one twin."""
+    if kind == "drive":
+        drive, pos, m, n_el = p
+        return map_positions(
+            lambda y: body(state_space(drive, y, n_modes=m, n_elements=n_el)), pos,
+            has_eig=has_eig,
+        )
+    if p.A.ndim == 3:
+        return map_positions(body, p, has_eig=has_eig)
+    return body(p)
+
+
+def _squeeze(tree, scalar: bool, kind: str):
+    if kind == "drive" and scalar:
+        return jax.tree_util.tree_map(lambda x: x[0], tree)
+    return tree
+
+
+def _grid(freq_hz, fn: str, min_points: int = 1):
+    f = _checks.frequency_grid(freq_hz, f"{fn}(freq_hz=...)")
+    if f.shape[0] < min_points:
+        raise ValueError(f"`{fn}(freq_hz=...)` must have at least {min_points} points, got "
+                         f"{f.shape[0]}")
+    return f
+
+
+def _below_nyquist(f, kind, method, servo, fn: str):
+    if kind == "frf" and not method.takes_frf:
+        raise ValueError(
+            f"`{fn}(method=...)`: the sampled loop needs the plant in state space (its "
+            "zero-order-hold equivalent is not a function of the FRF): pass the drive with "
+            "`position_m=...` or a `fdjax.state_space(...)` twin, or analyse the FRF with "
+            "`method=fdjax.Continuous()`"
+        )
+    top = method.max_freq_hz(servo)
+    if math.isfinite(top):
+        f = _checks.check(
+            f, lambda v: v < top, f"{fn}(freq_hz=...)",
+            f"below the servo's Nyquist frequency {top:.6g} Hz for the sampled loop",
+        )
+    return f
+
+
+# ------------------------------------------------------------------------------------ public
+def open_loop(
+    controller: AbstractController,
+    plant,
+    freq_hz: Float[ArrayLike, " freq"],
+    *,
+    servo: Servo = Servo(),
+    method: AbstractLoopModel = SampledData(),
+    position_m: Float[ArrayLike, "*pos"] | None = None,
+    screw_ratio: Float[ArrayLike, ""] | None = None,
+    n_modes: int | None = None,
+    n_elements: int | None = None,
+) -> OpenLoop:
+    r"""Open-loop frequency responses of ``controller`` around ``plant`` (module docstring).
+
+        L_u = −P (K_x g_x + K_v g_v),  L_v = −K_v P g_v,  L_p = −K_x P g_x / (1 + L_v),
+
+    with P = k_m e^{−iωτ} (continuous) or k_m z^{−d} on z = e^{iωT} (sampled).  For the
+    double loop of paper Fig. 13: L_v = C_v G_MCM k_m e^{−iωτ} i_sc iω h_θ1,T1 and
+    L_p = k_p h_x2,T1 C_v G_MCM k_m e^{−iωτ}/(1 + L_v).  Differentiable in the controller and
+    the plant; one compiled program for a batch of positions.
+
+    Args:
+        controller: the controller.
+        plant: a drive (with ``position_m``), a StateSpace (or batch), or an FRF array (with
+            ``screw_ratio``; continuous methods only).
+        freq_hz: positive, increasing grid (Hz); below the Nyquist frequency for the sampled
+            loop.
+        servo: the servo's hardware (default: the reference servo).
+        method: ``SampledData()`` (default), ``Continuous(pade_order=None)`` or a ``PadeODE``.
+        position_m: table position(s) (m) for a drive plant (or an FRF's, for a scheduled
+            controller).
+        screw_ratio: i_sc (m/rad) for an FRF plant.
+        n_modes, n_elements: the twin's kept modes (default: the 4 kHz band's count) and screw
+            elements, for a drive plant.
+    """
+    fn = "open_loop"
+    controller = _check_controller(controller, fn)
+    servo, method = _check_servo(servo, fn), _check_method(method, fn)
+    f = _grid(freq_hz, fn)
+    kind, p, scalar = _plant(plant, position_m, fn, n_modes=n_modes, n_elements=n_elements,
+                             freq_hz=f, screw_ratio=screw_ratio)
+    f = _below_nyquist(f, kind, method, servo, fn)
+    loops = _open_loop_jit(controller, kind, p, f, servo, method)
+    return OpenLoop(freq_hz=f, **_squeeze(loops, scalar, kind))
+
+
+def _open_loop_impl(controller, kind, p, f, servo, method):
+    omega = _TWO_PI * f
+    if kind == "frf":
+        H, sr, pos = p
+        out = method.frf_open_loops(controller, H, omega, sr, servo, pos[..., None])
+        return out
+
+    def one(twin):
+        L_fn, params = method.open_loop_model(controller, twin, servo)
+        return L_fn(params, omega)
+
+    return _map_twins(kind, p, one)
+
+
+_open_loop_traced = eqx.debug.assert_max_traces(_open_loop_impl, max_traces=None)
+_open_loop_jit = eqx.filter_jit(_open_loop_traced)
+
+
+def stability_margins(
+    freq_hz: Float[ArrayLike, " freq"], L: Complex[ArrayLike, "*batch freq"]
+) -> Margins:
+    r"""Gain, phase and modulus margins of a sampled SISO open loop L on ``freq_hz``.
+
+    python-control's conventions (module docstring).  Crossings are located inside grid
+    intervals by interpolating log L linearly in log ω (exact for power laws, second order in
+    the spacing otherwise); the modulus margin by a parabola through the three grid points
+    around each local minimum of |1 + L|.  For a model use :func:`loop_margins`, which refines
+    the crossings to round-off.  Leading batch axes are mapped over.
+
+    Args:
+        freq_hz: positive, increasing grid (Hz), long enough to contain the crossovers.
+        L: complex open loop on that grid, shape (*batch, n_freq).
+    """
+    f = _checks.frequency_grid(freq_hz, "stability_margins(freq_hz=...)")
+    L = jnp.asarray(L)
+    if L.ndim < 1 or L.shape[-1] != f.shape[0] or f.shape[0] < 3:
+        raise ValueError(
+            f"`stability_margins(L=...)` must have shape (*batch, n_freq) with n_freq = "
+            f"{f.shape[0]} ≥ 3, got {L.shape}"
+        )
+    L = _checks.finite(L.astype(jnp.complex128), "stability_margins(L=...)")
+    return _stability_margins_jit(f, L)
+
+
+def _batched_grid_margins(u, L):
+    fn = lambda x: grid_margins(u, x)
+    for _ in range(L.ndim - 1):
+        fn = jax.vmap(fn)
+    return fn(L)
+
+
+@eqx.filter_jit
+def _stability_margins_jit(f, L):
+    return _batched_grid_margins(jnp.log(_TWO_PI * f), L)
+
+
+def loop_margins(
+    controller: AbstractController,
+    plant,
+    freq_hz: Float[ArrayLike, " freq"],
+    *,
+    servo: Servo = Servo(),
+    method: AbstractLoopModel = SampledData(),
+    position_m: Float[ArrayLike, "*pos"] | None = None,
+    screw_ratio: Float[ArrayLike, ""] | None = None,
+    n_modes: int | None = None,
+    n_elements: int | None = None,
+) -> LoopMargins:
+    r"""Gain, phase and modulus margins (with their frequencies) of the loop broken at the plant
+    input, at the speed feedback and at the scale.
+
+    By default those of the loop as it runs: the sampled loop on the unit circle (module
+    docstring), the margins python-control's ``stability_margins`` gives for the same discrete
+    system.  The open loops are sampled on ``freq_hz``, every crossing is bracketed there and,
+    for a twin (a drive or a StateSpace), refined by safeguarded Newton steps on the model's own
+    L to round-off; the margins are differentiable through the refined crossings.  For an FRF
+    array they are interpolated (:func:`stability_margins`).  The grid must bracket every
+    crossing (a few hundred points per decade around lightly damped modes).
+
+    Args: as :func:`open_loop` (at least 3 frequencies).
+    """
+    fn = "loop_margins"
+    controller = _check_controller(controller, fn)
+    servo, method = _check_servo(servo, fn), _check_method(method, fn)
+    f = _grid(freq_hz, fn, min_points=3)
+    kind, p, scalar = _plant(plant, position_m, fn, n_modes=n_modes, n_elements=n_elements,
+                             freq_hz=f, screw_ratio=screw_ratio)
+    f = _below_nyquist(f, kind, method, servo, fn)
+    return _squeeze(_loop_margins_jit(controller, kind, p, f, servo, method), scalar, kind)
+
+
+def _loop_margins_impl(controller, kind, p, f, servo, method):
+    u = jnp.log(_TWO_PI * f)
+    omega = _TWO_PI * f
+    if kind == "frf":
+        H, sr, pos = p
+        loops = method.frf_open_loops(controller, H, omega, sr, servo, pos[..., None])
+        return LoopMargins(**{
+            k: None if L is None else _batched_grid_margins(u, L) for k, L in loops.items()
+        })
+
+    def one(twin):
+        L_fn, params = method.open_loop_model(controller, twin, servo)
+        present = [k for k, L in L_fn(params, omega[:1]).items() if L is not None]
+
+        def Ls_fn(prm, w):
+            out = L_fn(prm, w)
+            return tuple(out[k] for k in present)
+
+        ms = model_margins(u, Ls_fn(params, omega), Ls_fn, params)
+        got = dict(zip(present, ms))
+        return LoopMargins(**{k: got.get(k) for k in _LOOPS})
+
+    return _map_twins(kind, p, one)
+
+
+_loop_margins_traced = eqx.debug.assert_max_traces(_loop_margins_impl, max_traces=None)
+_loop_margins_jit = eqx.filter_jit(_loop_margins_traced)
+
+
+def closed_loop(
+    controller: AbstractController,
+    plant,
+    *,
+    servo: Servo = Servo(),
+    method: AbstractLoopModel = SampledData(),
+    position_m: Float[ArrayLike, "*pos"] | None = None,
+    n_modes: int | None = None,
+    n_elements: int | None = None,
+) -> LTI:
+    r"""The loop closed around the twin, as one :class:`fdjax.LTI` with inputs (r, ṙ, r̈, F3)
+    (:data:`fdjax.CLOSED_LOOP_INPUTS`) and outputs (θ1, x2, x3, T1)
+    (:data:`fdjax.CLOSED_LOOP_OUTPUTS`).
+
+    ``SampledData()`` (default): the discrete loop the servo runs — states: the plant's, the
+    previous encoder angle, the discrete law's, the d delayed commands; ``dt`` is the servo
+    period and ``control.ss(A, B, C, D, dt)`` accepts it as it is.  ``Continuous()`` or
+    ``PadeODE()``: the continuous loop — the plant's, the law's and the Padé delay's states, the
+    algebraic loop through the twin's residual feed-through solved exactly.
+
+    Args: as :func:`open_loop` (no frequency grid; the plant is a drive or a StateSpace).
+    """
+    fn = "closed_loop"
+    controller = _check_controller(controller, fn)
+    servo, method = _check_servo(servo, fn), _check_method(method, fn)
+    kind, p, scalar = _plant(plant, position_m, fn, n_modes=n_modes, n_elements=n_elements)
+    if kind == "frf":
+        raise TypeError(f"`{fn}(plant=...)` must be a drive or a StateSpace, not an FRF array")
+    return _squeeze(_closed_loop_jit(controller, kind, p, servo, method), scalar, kind)
+
+
+def _closed_loop_impl(controller, kind, p, servo, method):
+    return _map_twins(kind, p, lambda twin: method.closed_loop(controller, twin, servo))
+
+
+_closed_loop_traced = eqx.debug.assert_max_traces(_closed_loop_impl, max_traces=None)
+_closed_loop_jit = eqx.filter_jit(_closed_loop_traced)
+
+
+def check_stability(
+    controller: AbstractController,
+    plant,
+    *,
+    servo: Servo = Servo(),
+    method: AbstractLoopModel = SampledData(),
+    position_m: Float[ArrayLike, "*pos"] | None = None,
+    n_modes: int | None = None,
+    n_elements: int | None = None,
+    throw: bool = False,
+) -> Stability:
+    r"""Closed-loop stability from the eigenvalues of :func:`closed_loop`.
+
+    Stable when every pole decays: Re s < 0 for the continuous loop, |z| < 1 for the sampled
+    one (then growth rates are ln|z|/T).  ``.message`` names the position and the least stable
+    pole, e.g. "closed loop unstable at table position 0.7 m: least stable pole at 93.7 Hz
+    growing at 16.5 1/s".  One compiled program for all positions; the eigenvalue problems run
+    one position at a time (:func:`fdjax._sweep.map_positions`).
+
+    Args: as :func:`closed_loop`, and
+        throw: raise when unstable — eagerly a RuntimeError with ``.message``; under ``jit`` the
+            result code's own message.  Off by default: an unstable loop is an answer.
+    """
+    fn = "check_stability"
+    controller = _check_controller(controller, fn)
+    servo, method = _check_servo(servo, fn), _check_method(method, fn)
+    kind, p, scalar = _plant(plant, position_m, fn, n_modes=n_modes, n_elements=n_elements)
+    if kind == "frf":
+        raise TypeError(f"`{fn}(plant=...)` must be a drive or a StateSpace, not an FRF array")
+    result = _squeeze(_stability_jit(controller, kind, p, servo, method), scalar, kind)
+    if throw:
+        failed = result.result != RESULTS.successful
+        if _checks.is_concrete(result.stable):
+            if bool(np.any(np.asarray(failed))):
+                raise RuntimeError(result.message)
+        else:
+            result = result.result.error_if(result, failed)
+    return result
+
+
+def _stability_impl(controller, kind, p, servo, method):
+    def one(twin):
+        cl = method.closed_loop(controller, twin, servo)
+        lam = jnp.linalg.eigvals(cl.A)
+        s = method.poles_to_s(lam, servo)
+        order = jnp.argsort(-jnp.real(s))
+        lam, s = lam[order], s[order]
+        growth = jnp.real(s[0])
+        stable = growth < 0
+        damping = jnp.min(jnp.where(jnp.isfinite(s), -jnp.real(s) / jnp.abs(s), jnp.inf))
+        return Stability(
+            stable=stable,
+            growth_rate=growth,
+            min_damping=damping,
+            position_m=twin.position_m,
+            poles=lam,
+            result=RESULTS.where(stable, RESULTS.successful, RESULTS.unstable),
+            discrete=method.max_freq_hz(servo) < math.inf,
+            _period=float(servo.period),
+        )
+
+    return _map_twins(kind, p, one, has_eig=True)
+
+
+_stability_traced = eqx.debug.assert_max_traces(_stability_impl, max_traces=None)
+_stability_jit = eqx.filter_jit(_stability_traced)

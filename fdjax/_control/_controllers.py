@@ -1,0 +1,311 @@
+r"""Controllers: each one's law written once, as an LTI map from the loop's signals to the
+current command (paper Fig. 13).
+
+The signals a feed-drive controller reads are
+
+    w = (r, ṙ, r̈, x2, v_m)     (:data:`LAW_SIGNALS`)
+
+— the reference position, velocity and acceleration (m, m/s, m/s²), the linear scale x2 (m) and
+the motor speed in linear units v_m = i_sc θ̇1 (m/s; the servo forms it from the encoder) — and
+its output is the current command u (A).  A controller's :meth:`~AbstractController.law` is a
+sum of *paths*, each a linear combination of the signals passed through a chain of SISO blocks
+(:mod:`fdjax._control._blocks`):
+
+    u = Σ_p G_p,1(s) ⋯ G_p,k(s) · (Σ_j g_pj w_j).
+
+From the law alone follow the exact-delay open loops, the continuous closed loop (delay as a
+Padé approximant) and the sampled closed loop (each block discretised as the servo runs it):
+:mod:`fdjax._control._interconnect`.  A new controller is one subclass with ``law``; a
+scheduled controller's law depends on the table position it is asked at.
+
+Controllers hold tunable leaves only (gains as logarithms, filters); the hardware (period,
+delay, motor constant) is a :class:`fdjax.Servo`, the screw ratio the drive's.
+"""
+
+from __future__ import annotations
+
+import abc
+import math
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float
+
+from .. import _checks
+from .._filters import MCM, AbstractFilter
+from ._blocks import PI, PID, AbstractBlock, as_block
+from ._servo import REFERENCE_K_MOTOR
+
+__all__ = ["AbstractController", "DoubleLoop", "PIDLoop", "Path", "Law", "LAW_SIGNALS"]
+
+LAW_SIGNALS = ("r", "r_dot", "r_ddot", "x2", "v_m")
+"""Inputs of a controller's law: reference position (m), velocity (m/s), acceleration (m/s²),
+the scale position x2 (m) and the motor speed in linear units v_m = i_sc θ̇1 (m/s)."""
+
+_TWO_PI = 2.0 * math.pi
+# The reference drive's screw ratio and reflected inertia, for the default acceleration
+# feed-forward (a rigid drive needs k_ffa = J_eq/(k_m i_sc)).
+_I_SC_REF = 0.005 / _TWO_PI  # m/rad: 5 mm lead (50×5 screw)
+_J_EQ_REF = 1.2444e-2  # kg·m²: rotor + hubs + screw torsion + table reflected (m i_sc²)
+
+
+class Path(eqx.Module):
+    """One path of a law: ``blocks`` in series applied to Σ_j gains[j]·w_j.
+
+    Attributes:
+        gains: signal name (one of :data:`LAW_SIGNALS`) → gain; the names are static (which
+            signals a controller reads is part of its structure), the gains are leaves.
+        blocks: SISO blocks applied in order (first to last); empty for a static gain.
+    """
+
+    gains: dict[str, Array]
+    blocks: tuple[AbstractBlock, ...] = ()
+
+    def __init__(self, gains: dict, blocks=()):
+        for name in gains:
+            if name not in LAW_SIGNALS:
+                raise ValueError(
+                    f"`Path(gains=...)` keys must be among {LAW_SIGNALS}, got {name!r}"
+                )
+        self.gains = {k: jnp.asarray(v, jnp.float64) for k, v in gains.items()}
+        self.blocks = tuple(as_block(b, "Path(blocks=...)") for b in blocks)
+
+    def row(self) -> Float[Array, " 5"]:
+        """The gains as a row over :data:`LAW_SIGNALS`."""
+        r = jnp.zeros(len(LAW_SIGNALS), jnp.float64)
+        for name, g in self.gains.items():
+            r = r.at[LAW_SIGNALS.index(name)].add(g)
+        return r
+
+
+class Law(eqx.Module):
+    """u = Σ over ``paths``: a controller's law (module docstring)."""
+
+    paths: tuple[Path, ...]
+
+    def reads(self, signal: str) -> bool:
+        """Whether the law reads ``signal`` (static: from the paths' structure)."""
+        return any(signal in p.gains for p in self.paths)
+
+    def transfer(self, s) -> Array:
+        """K(s), shape (*s.shape, 5): the law's response from each signal to u."""
+        s = jnp.asarray(s)
+        out = 0.0
+        for p in self.paths:
+            g = jnp.ones(s.shape, jnp.complex128)
+            for b in p.blocks:
+                g = g * b.transfer(s)
+            out = out + g[..., None] * p.row().astype(jnp.complex128)
+        return out
+
+    def discrete_transfer(self, z, period, filter_method: str) -> Array:
+        """K_d(z), shape (*z.shape, 5): the sampled law's response."""
+        z = jnp.asarray(z)
+        out = 0.0
+        for p in self.paths:
+            g = jnp.ones(z.shape, jnp.complex128)
+            for b in p.blocks:
+                g = g * b.discrete_transfer(z, period, filter_method)
+            out = out + g[..., None] * p.row().astype(jnp.complex128)
+        return out
+
+
+class AbstractController(eqx.Module):
+    r"""A feed-drive controller: its law maps (r, ṙ, r̈, x2, v_m) to the current command.
+
+    Subclasses implement :meth:`law`; everything else — open loops (:func:`fdjax.open_loop`),
+    margins of the continuous and of the sampled loop (:func:`fdjax.loop_margins`), closed
+    loops (:func:`fdjax.closed_loop`), stability (:func:`fdjax.check_stability`) and both
+    simulations (:func:`fdjax.simulate`) — follows from it.  Hold tunable leaves only; the
+    hardware is a :class:`fdjax.Servo`.
+    """
+
+    @abc.abstractmethod
+    def law(self, position_m: Float[Array, ""]) -> Law:
+        """The law at table position ``position_m`` (m; a fixed controller ignores it)."""
+
+
+def _log_positive(value, where: str) -> Array:
+    return jnp.log(_checks.positive(_scalar(value, where), where))
+
+
+def _scalar(value, where: str) -> Array:
+    arr = jnp.asarray(value)
+    if arr.ndim != 0:
+        raise ValueError(f"`{where}` must be a scalar, got shape {arr.shape}")
+    if jnp.issubdtype(arr.dtype, jnp.complexfloating):
+        raise ValueError(f"`{where}` must be real, got dtype {arr.dtype}")
+    return arr.astype(jnp.float64)
+
+
+def _finite(value, where: str) -> Array:
+    return _checks.finite(_scalar(value, where), where)
+
+
+class DoubleLoop(AbstractController):
+    r"""The nested double loop of paper Fig. 13: P position loop on the linear scale x2 outside,
+    PI speed loop on the motor inside, MCM on the speed controller's output, feed-forward.
+
+        v_cmd = k_p (r − x2) + k_ffv ṙ,      v_m = i_sc θ̇1,
+        u = G_MCM(s) k_v (1 + k_i/s) (v_cmd − v_m) + k_ffa r̈,      T1 = k_m e^{−sτ} u.
+
+    Units: u is a current command (A), so k_v is in A·s/m and k_ffa in A·s²/m; k_p and k_i in
+    1/s (k_i is the PI corner frequency, rad/s); k_ffv is dimensionless (1 = full velocity
+    feed-forward).  The ideal acceleration feed-forward of a rigid drive is
+    k_ffa = J_eq/(k_m i_sc), J_eq the inertia reflected to the motor.
+
+    Defaults: hand-set for :func:`fdjax.reference_drive` and the reference :class:`fdjax.Servo`
+    (τ = 250 µs: two periods at 8 kHz) with an identity MCM, stable at every table position
+    0.1–0.7 m.
+
+    Positivity by parameterisation: the gains k_p, k_v, k_i are stored as their logarithms
+    (``log_kp``, ``log_kv``, ``log_ki``), so any gradient step keeps them positive; the physical
+    values are properties.  The feed-forward gains are free reals.  ``eqx.filter_grad`` gives
+    gradients on the stored leaves (``g.log_kp = k_p ∂/∂k_p``) and on the MCM's;
+    ``jax.grad(lambda p: f(DoubleLoop(**p)))(loop.params())`` gives them in physical units.
+
+    Attributes (arguments of the constructor):
+        kp: outer position gain (1/s).
+        kv: speed-loop proportional gain (A·s/m).
+        ki: speed-loop integral corner (rad/s).
+        k_ffv: velocity feed-forward (–).
+        k_ffa: acceleration feed-forward (A·s²/m).
+        mcm: the modal characteristic modifier (:class:`fdjax.MCM`, or any filter), acting on
+            the speed controller's output; ``MCM()`` is the identity.
+    """
+
+    log_kp: Float[Array, ""]
+    log_kv: Float[Array, ""]
+    log_ki: Float[Array, ""]
+    k_ffv: Float[Array, ""]
+    k_ffa: Float[Array, ""]
+    mcm: AbstractFilter
+
+    def __init__(
+        self,
+        kp: ArrayLike = 40.0,
+        kv: ArrayLike = 3.0e3,
+        ki: ArrayLike = 60.0,
+        *,
+        k_ffv: ArrayLike = 1.0,
+        k_ffa: ArrayLike = _J_EQ_REF / (REFERENCE_K_MOTOR * _I_SC_REF),
+        mcm: AbstractFilter | None = None,
+    ):
+        if mcm is None:
+            mcm = MCM()
+        if not isinstance(mcm, AbstractFilter):
+            raise TypeError(
+                f"`DoubleLoop(mcm=...)` must be an fdjax.MCM (or another fdjax filter), "
+                f"got {type(mcm).__name__}"
+            )
+        self.log_kp = _log_positive(kp, "DoubleLoop(kp=...)")
+        self.log_kv = _log_positive(kv, "DoubleLoop(kv=...)")
+        self.log_ki = _log_positive(ki, "DoubleLoop(ki=...)")
+        self.k_ffv = _finite(k_ffv, "DoubleLoop(k_ffv=...)")
+        self.k_ffa = _finite(k_ffa, "DoubleLoop(k_ffa=...)")
+        self.mcm = mcm
+
+    @property
+    def kp(self) -> Float[Array, ""]:
+        """Outer position gain k_p (1/s)."""
+        return jnp.exp(self.log_kp)
+
+    @property
+    def kv(self) -> Float[Array, ""]:
+        """Speed-loop gain k_v (A·s/m)."""
+        return jnp.exp(self.log_kv)
+
+    @property
+    def ki(self) -> Float[Array, ""]:
+        """Speed-loop integral corner k_i (rad/s)."""
+        return jnp.exp(self.log_ki)
+
+    def params(self) -> dict:
+        """Physical parameters; ``DoubleLoop(**loop.params())`` rebuilds ``loop``."""
+        return dict(
+            kp=self.kp, kv=self.kv, ki=self.ki, k_ffv=self.k_ffv, k_ffa=self.k_ffa, mcm=self.mcm
+        )
+
+    def law(self, position_m=None) -> Law:
+        """u = G_MCM C_v (k_p r + k_ffv ṙ − k_p x2 − v_m) + k_ffa r̈."""
+        kp = self.kp
+        speed = Path(
+            {"r": kp, "r_dot": self.k_ffv, "x2": -kp, "v_m": -jnp.ones(())},
+            (PI(self.kv, self.ki), self.mcm),
+        )
+        return Law((speed, Path({"r_ddot": self.k_ffa})))
+
+
+class PIDLoop(AbstractController):
+    r"""The paper's baseline: one PID position loop on the linear scale x2 (Figs. 16, 18).
+
+        u = C_pid(s)(r − x2) + k_ffv ṙ + k_ffa r̈,   C_pid(s) = k_p + k_i/s + k_d s/(1 + s/ω_d),
+        T1 = k_m e^{−sτ} u,      L(ω) = C_pid(iω) k_m e^{−iωτ} h_x2,T1(ω).
+
+    Units (u is a current command, A): k_p in A/m, k_i in A/(m·s), k_d in A·s/m, the derivative
+    filter corner ω_d in rad/s, k_ffv in A·s/m, k_ffa in A·s²/m.  Gains stored as logarithms
+    (``log_kp``, ``log_ki``, ``log_kd``, ``log_wd``; the physical values are properties).
+
+    Defaults: hand-set for :func:`fdjax.reference_drive` and the reference servo: stable at
+    every table position 0.1–0.7 m and soft, as the paper's baseline.
+    """
+
+    log_kp: Float[Array, ""]
+    log_ki: Float[Array, ""]
+    log_kd: Float[Array, ""]
+    log_wd: Float[Array, ""]
+    k_ffv: Float[Array, ""]
+    k_ffa: Float[Array, ""]
+
+    def __init__(
+        self,
+        kp: ArrayLike = 1.5e3,
+        ki: ArrayLike = 5.0e3,
+        kd: ArrayLike = 100.0,
+        wd: ArrayLike = _TWO_PI * 150.0,
+        *,
+        k_ffv: ArrayLike = 0.0,
+        k_ffa: ArrayLike = 0.0,
+    ):
+        self.log_kp = _log_positive(kp, "PIDLoop(kp=...)")
+        self.log_ki = _log_positive(ki, "PIDLoop(ki=...)")
+        self.log_kd = _log_positive(kd, "PIDLoop(kd=...)")
+        self.log_wd = _log_positive(wd, "PIDLoop(wd=...)")
+        self.k_ffv = _finite(k_ffv, "PIDLoop(k_ffv=...)")
+        self.k_ffa = _finite(k_ffa, "PIDLoop(k_ffa=...)")
+
+    @property
+    def kp(self) -> Float[Array, ""]:
+        """Proportional gain (A/m)."""
+        return jnp.exp(self.log_kp)
+
+    @property
+    def ki(self) -> Float[Array, ""]:
+        """Integral gain (A/(m·s))."""
+        return jnp.exp(self.log_ki)
+
+    @property
+    def kd(self) -> Float[Array, ""]:
+        """Derivative gain (A·s/m)."""
+        return jnp.exp(self.log_kd)
+
+    @property
+    def wd(self) -> Float[Array, ""]:
+        """Derivative filter corner ω_d (rad/s)."""
+        return jnp.exp(self.log_wd)
+
+    def params(self) -> dict:
+        """Physical parameters; ``PIDLoop(**loop.params())`` rebuilds ``loop``."""
+        return dict(
+            kp=self.kp, ki=self.ki, kd=self.kd, wd=self.wd, k_ffv=self.k_ffv, k_ffa=self.k_ffa
+        )
+
+    def controller(self, s: ArrayLike):
+        """C_pid(s) = k_p + k_i/s + k_d s/(1 + s/ω_d) (A/m) at complex ``s``."""
+        return PID(self.kp, self.ki, self.kd, self.wd).transfer(s)
+
+    def law(self, position_m=None) -> Law:
+        """u = C_pid (r − x2) + k_ffv ṙ + k_ffa r̈."""
+        one = jnp.ones(())
+        pid = Path({"r": one, "x2": -one}, (PID(self.kp, self.ki, self.kd, self.wd),))
+        return Law((pid, Path({"r_dot": self.k_ffv, "r_ddot": self.k_ffa})))

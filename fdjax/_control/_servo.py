@@ -1,0 +1,68 @@
+r"""The servo's hardware: sampling, the control delay and the motor constant.
+
+What a drive's hardware fixes is kept apart from what a designer tunes: a controller
+(:class:`fdjax.DoubleLoop`, :class:`fdjax.PIDLoop`, or a user's own) holds only gains and
+filters, so ``eqx.filter_grad`` of a loss over a controller differentiates those alone and an
+optax step cannot touch the hardware.  The screw ratio i_sc = lead/2π that scales the encoder's
+motor speed to linear units is the drive's, read from the plant.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+from jaxtyping import Array, Float
+
+from .. import _checks
+
+__all__ = ["Servo"]
+
+REFERENCE_PERIOD_S = 1.25e-4
+"""Servo period of the reference servo (s): an 8 kHz current/speed/position loop."""
+
+REFERENCE_DELAY_SAMPLES = 2
+"""Control delay of the reference servo in servo periods: one for the measurement (encoder and
+scale are read at the start of the period), one for the computation (the command is applied at
+the next period's start)."""
+
+REFERENCE_K_MOTOR = 1.2
+"""k_i·k_T of the reference servo (N·m/A): a ~10 N·m servo motor and its amplifier."""
+
+
+class Servo(eqx.Module):
+    r"""The servo drive's hardware (paper Fig. 7): servo period T, control delay τ = d·T, and
+    the motor gain k_m = k_i·k_T from current command to torque.
+
+        T1(t) = k_m u(t − τ),      τ = d T,
+
+    The delay lumps measurement and computation; in the sampled loop it is d whole samples, in
+    the continuous loop e^{−sτ} exactly (or its Padé approximant).
+
+    Attributes:
+        period: servo period T (s, static: it sets the number of samples of a run); default
+            125 µs (8 kHz).  Drives close these loops at 8–16 kHz.
+        delay_samples: d ≥ 1, the delay in servo periods (static: it sets the sampled loop's
+            size); default 2.
+        k_motor: k_i·k_T (N·m/A); default 1.2.
+    """
+
+    period: float = eqx.field(static=True, default=REFERENCE_PERIOD_S)
+    delay_samples: int = eqx.field(static=True, default=REFERENCE_DELAY_SAMPLES)
+    k_motor: Float[Array, ""] = _checks.positive_field("Servo(k_motor=...)",
+                                                       default=REFERENCE_K_MOTOR)
+
+    def __check_init__(self):
+        p = self.period
+        if isinstance(p, bool) or not isinstance(p, int | float) or not 0 < p < 1:
+            raise ValueError(f"`Servo(period=...)` must be a number in (0, 1) s, got {p!r}")
+        d = self.delay_samples
+        if isinstance(d, bool) or not isinstance(d, int) or not 1 <= d <= 64:
+            raise ValueError(f"`Servo(delay_samples=...)` must be an int in [1, 64], got {d!r}")
+        if self.k_motor.ndim != 0:
+            raise ValueError(
+                f"`Servo(k_motor=...)` must be a scalar, got shape {self.k_motor.shape}"
+            )
+
+    @property
+    def tau(self) -> float:
+        """The control delay τ = d·T (s)."""
+        return self.delay_samples * float(self.period)

@@ -1,0 +1,158 @@
+r"""One container for every linear time-invariant system of the toolkit.
+
+A filter's realisation, a controller's law, the continuous closed loop and the sampled closed
+loop are all
+
+    continuous (``dt is None``):   ẋ = A x + B u,        y = C x + D u,
+    discrete   (``dt = T``):       x_{k+1} = A x_k + B u_k,   y_k = C x_k + D u_k,
+
+with python-control's shapes (``control.ss(A, B, C, D[, dt])`` accepts the arrays as they
+are).  The helpers here build systems from parts (series, parallel sums, Tustin and zero-order
+hold discretisation) and evaluate them; everything is a pure JAX function, so ``jit``, ``vmap``
+and ``grad`` pass through.
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.scipy.linalg as jsl
+from jaxtyping import Array, ArrayLike, Complex, Float
+
+__all__ = ["LTI"]
+
+_TWO_PI = 2.0 * math.pi
+
+
+def _c(x) -> Array:
+    return jnp.asarray(x).astype(jnp.complex128)
+
+
+class LTI(eqx.Module):
+    r"""A linear time-invariant system in state space, continuous or discrete.
+
+    Attributes:
+        A: (n, n).  B: (n, m).  C: (p, n).  D: (p, m).
+        dt: the sample period T (s) of a discrete system; None for a continuous one.
+        position_m: the table position (m) the system belongs to, where it has one (a closed
+            loop around the drive); None otherwise.
+    """
+
+    A: Float[Array, "n n"]
+    B: Float[Array, "n m"]
+    C: Float[Array, "p n"]
+    D: Float[Array, "p m"]
+    dt: Float[Array, ""] | None = None
+    position_m: Float[Array, ""] | None = None
+
+    @property
+    def n_states(self) -> int:
+        return self.A.shape[-1]
+
+    @property
+    def is_discrete(self) -> bool:
+        return self.dt is not None
+
+    def transfer(self, x: ArrayLike) -> Complex[Array, "*shape p m"]:
+        """C (xI − A)⁻¹ B + D at complex ``x`` of any shape (x = s, or z for a discrete system)."""
+        return transfer(self.A, self.B, self.C, self.D, x)
+
+    def frf(self, freq_hz: Float[ArrayLike, " freq"]) -> Complex[Array, "freq p m"]:
+        """Frequency response at ``freq_hz`` (Hz): s = i2πf, or z = e^{i2πfT} when discrete."""
+        from . import _checks
+
+        f = _checks.frequency_grid(freq_hz, "LTI.frf(freq_hz=...)")
+        return self.transfer(self.unit_circle_or_axis(_TWO_PI * f))
+
+    def unit_circle_or_axis(self, omega) -> Complex[Array, "*shape"]:
+        """The point of the complex plane at angular frequency ω: iω, or e^{iωT}."""
+        s = _c(omega) * 1j
+        return s if self.dt is None else jnp.exp(s * _c(self.dt))
+
+    def poles(self) -> Complex[Array, " n"]:
+        """Eigenvalues of A, sorted by real part (continuous) or modulus (discrete), largest first.
+
+        Under ``vmap`` on a CPU prefer :func:`fdjax.check_stability`, which takes one
+        eigenvalue problem per position."""
+        lam = jnp.linalg.eigvals(self.A)
+        key = jnp.real(lam) if self.dt is None else jnp.abs(lam)
+        return lam[jnp.argsort(-key)]
+
+
+def transfer(A, B, C, D, x) -> Array:
+    """C (xI − A)⁻¹ B + D at complex x (any shape) by a direct solve."""
+    x = _c(x)
+    n = A.shape[-1]
+    if n == 0:
+        return jnp.broadcast_to(_c(D), (*x.shape, *D.shape))
+    M = x[..., None, None] * jnp.eye(n, dtype=jnp.complex128) - _c(A)
+    X = jnp.linalg.solve(M, jnp.broadcast_to(_c(B), (*x.shape, *B.shape)))
+    return _c(C) @ X + _c(D)
+
+
+def series(first: LTI, second: LTI) -> LTI:
+    """u → first → second → y (first's outputs feed second's inputs)."""
+    n1, n2 = first.A.shape[0], second.A.shape[0]
+    A = jnp.block([
+        [first.A, jnp.zeros((n1, n2))],
+        [second.B @ first.C, second.A],
+    ])
+    B = jnp.concatenate([first.B, second.B @ first.D], 0)
+    C = jnp.concatenate([second.D @ first.C, second.C], 1)
+    return LTI(A, B, C, second.D @ first.D, first.dt)
+
+
+def parallel(systems: list[LTI], dt=None) -> LTI:
+    """Σ_i G_i with separate inputs: block-diagonal A and B, concatenated C, D side by side.
+
+    Inputs are the concatenation of each system's inputs; the outputs are summed."""
+    A = jsl.block_diag(*[s.A for s in systems])
+    B = jsl.block_diag(*[s.B for s in systems])
+    C = jnp.concatenate([s.C for s in systems], 1)
+    D = jnp.concatenate([s.D for s in systems], 1)
+    return LTI(A, B, C, D, dt)
+
+
+def tustin(sys: LTI, period) -> LTI:
+    """Bilinear (Tustin) discretisation, unprewarped: s = (2/T)(z − 1)/(z + 1)."""
+    h = jnp.asarray(period, jnp.float64)
+    n = sys.A.shape[0]
+    if n == 0:
+        return LTI(sys.A, sys.B, sys.C, sys.D, h)
+    Q = jnp.linalg.inv(jnp.eye(n) - 0.5 * h * sys.A)
+    Ad = Q @ (jnp.eye(n) + 0.5 * h * sys.A)
+    Bd = Q @ sys.B * h
+    Cd = sys.C @ Q
+    Dd = sys.D + Cd @ sys.B * (0.5 * h)
+    return LTI(Ad, Bd, Cd, Dd, h)
+
+
+def expm(M) -> Array:
+    r"""exp(M) after a diagonal balancing M → D⁻¹MD (Osborne's iteration, powers of two, so
+    exact): the realisations here can be badly scaled (the Padé delay: ‖M‖₁ ~ 1e7 for a loop
+    step), which costs exp and its derivative accuracy; balancing brings the norm down by orders
+    of magnitude.  exp(D⁻¹MD) = D⁻¹ exp(M) D; D is held constant under differentiation."""
+    Ma = jnp.abs(jax.lax.stop_gradient(M))
+    off = Ma * (1.0 - jnp.eye(M.shape[0]))
+    log_d = jnp.zeros(M.shape[0])
+    for _ in range(12):
+        d = jnp.exp2(log_d)
+        Bm = off * d[None, :] / d[:, None]
+        r, c = jnp.sum(Bm, 1), jnp.sum(Bm, 0)
+        ok = (r > 0) & (c > 0)
+        step = jnp.where(ok, 0.5 * jnp.log2(jnp.where(ok, r / jnp.where(ok, c, 1.0), 1.0)), 0.0)
+        log_d = log_d + jnp.round(step)
+    d = jnp.exp2(log_d)
+    E = jsl.expm(M * d[None, :] / d[:, None], max_squarings=64)
+    return E * d[:, None] / d[None, :]
+
+
+def zoh(A, B, period) -> tuple[Array, Array]:
+    """(Φ, Γ) of the exact zero-order hold: [[Φ, Γ], [0, I]] = exp([[A, B], [0, 0]] T)."""
+    n, m = A.shape[0], B.shape[1]
+    M = jnp.zeros((n + m, n + m)).at[:n, :n].set(A).at[:n, n:].set(B)
+    E = expm(M * jnp.asarray(period, jnp.float64))
+    return E[:n, :n], E[:n, n:]

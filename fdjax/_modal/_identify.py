@@ -1,0 +1,368 @@
+r"""Modal identification from an FRF, at one position or over a sweep (paper Sec. 3.2).
+
+:func:`identify_modes` fits
+
+.. math::
+
+    H_k(i\omega) \approx \sum_{r=1}^{n} \Big(\frac{R_{rk}}{i\omega-\lambda_r}
+    + \frac{R_{rk}^*}{i\omega-\lambda_r^*}\Big) + \frac{c_{0k}}{(i\omega)^2}
+    + \frac{c_{1k}}{i\omega} + d_k
+
+by minimising :math:`\sum_{f,k} |w_{fk}(H^\text{fit}_k - H_k)(f)|^2`: the data are scaled
+(:math:`\tilde s = i\omega/\omega_\text{ref}`, channels and weights at unit RMS, which leaves
+the minimiser unchanged), vector fitting gives the start (``_vector_fit``), the
+variable-projection Levenberg–Marquardt refinement the optimum (``_solver``), and the modal
+quantities are returned in SI units as a :class:`ModalFit`. :func:`identify_modes_batched`
+runs the same over a sweep of table positions in one jitted program.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+from jaxtyping import ArrayLike, Complex, Float
+
+from .._checks import finite, frequency_grid, positive, static_int, to_complex
+from .._sweep import map_positions
+from ._fit import _TWO_PI, ModalFit, _wrap_phase_deg
+from ._linear import _cplx, _linear_fit
+from ._solver import _DEFAULT_SOLVER, _poles_from_params, _scaled_residual, _varpro_jacobian
+from ._vector_fit import _select_modes, _starting_poles, _upper_poles, _vector_fit
+
+# Vector-fitting relocations with the selected n_modes poles, after the over-sized stage.
+_VF_FINAL_ITERATIONS = 5
+
+
+class _Model(eqx.Module):
+    n_modes: int = eqx.field(static=True)
+    rigid_body: int = eqx.field(static=True)
+    upper_residual: bool = eqx.field(static=True)
+    channel_shape: tuple[int, ...] = eqx.field(static=True)
+
+
+# The work is split into three jitted stages so that calls that differ only in the start
+# (vector fitting or ``initial=``) or in ``refine`` share compiled code; under a user's
+# jit/vmap/grad they trace into one program as usual.
+
+
+@eqx.filter_jit
+def _prepare(freq_hz, frf, weights):
+    """Scaled data: s̃ = iω/ω_ref, channels at unit RMS, weights at unit weighted RMS."""
+    n_freq = freq_hz.shape[0]
+    omega = _TWO_PI * freq_hz
+    omega_ref = omega[-1]
+    s = to_complex(omega / omega_ref) * 1j
+    h = frf.reshape(n_freq, -1).astype(jnp.complex128)
+    if weights is None:
+        w = 1.0 / jnp.maximum(jnp.abs(h), 1e-300)
+    else:
+        w = jnp.broadcast_to(weights.reshape(n_freq, -1), h.shape)
+    # Neither normalisation changes the minimiser: coefficients become of order one and
+    # the solver's tolerances relative.
+    h_scale = jnp.sqrt(jnp.mean(jnp.abs(h) ** 2, axis=0))
+    h = h / to_complex(h_scale)
+    w = w * h_scale
+    w = w / jnp.sqrt(jnp.mean((w * jnp.abs(h)) ** 2))
+    return s, h, w, h_scale, omega_ref
+
+
+@eqx.filter_jit
+def _start(s, h, w, model: _Model, iterations: int, extra: int):
+    """Vector fitting with n_modes + extra pairs, backward elimination to n_modes, and a
+    few relocations of the kept poles alone (which settle what the removed ones shared)."""
+    rb, ur = model.rigid_body, model.upper_residual
+    p0 = _starting_poles(jnp.imag(s), model.n_modes + extra)
+    p0 = _vector_fit(p0, s, h, w, iterations, rb, ur)
+    p0 = _select_modes(p0, s, h, w, model.n_modes, rb, ur)
+    return _vector_fit(p0, s, h, w, _VF_FINAL_ITERATIONS, rb, ur)
+
+
+@eqx.filter_jit
+def _finish(s, h, w, h_scale, omega_ref, p0, solver, model: _Model, refine: bool,
+            max_steps: int, throw: bool) -> ModalFit:
+    """Refinement from the scaled start poles p0, then the modal quantities in SI units."""
+    n = model.n_modes
+    rb, ur = model.rigid_body, model.upper_residual
+    p0 = jax.lax.stop_gradient(_upper_poles(p0, n))
+    if refine:
+        args = (p0, s, h, w, rb, ur)
+        u0 = jnp.zeros((n, 2))
+        # Marquardt scaling (as MINPACK's): parameters in units of the start Jacobian's column
+        # norms, so that the damping μI of LM is isotropic; a fixed gain on the residual makes
+        # μ = 1 (optimistix's first trust-region step) small against JᵀJ, so that the first
+        # steps from the (already close) vector-fitting start are Gauss–Newton steps.
+        _, jac0 = _varpro_jacobian(u0, p0, *jax.lax.stop_gradient((s, h, w)), rb, ur)
+        d = jnp.sqrt(jnp.sum(jac0**2, axis=(0, 1)))
+        d = jnp.maximum(d, 1e-12 * jnp.max(d))
+        sol = optx.least_squares(
+            _scaled_residual,
+            solver,
+            u0,
+            (d, args),
+            max_steps=max_steps,
+            throw=throw,
+        )
+        poles = _poles_from_params(sol.value / d, p0)
+        num_steps = sol.stats["num_steps"]
+        result = sol.result
+    else:
+        poles = p0
+        num_steps = jnp.array(0)
+        result = optx.RESULTS.successful
+
+    poles = poles[jnp.argsort(jnp.abs(poles))]
+    x, res = _linear_fit(poles, s, h, w, rb, ur)
+    nc = h.shape[1]
+    # Undo the scalings: R̃/(s̃−λ̃) = ω_ref R̃/(s−λ), c̃₀/s̃² = ω_ref² c̃₀/s², c̃₁/s̃ = ω_ref c̃₁/s.
+    residues = _cplx(x[0 : 2 * n : 2], x[1 : 2 * n : 2]) * to_complex(h_scale * omega_ref)[None]
+    fixed = x[2 * n :]
+    rigid = jnp.zeros((2, nc))
+    for k, j in enumerate(range(2 - rb, 2)):
+        rigid = rigid.at[j].set(fixed[k] * h_scale * omega_ref ** (2 - j))
+    upper = fixed[rb] * h_scale if ur else jnp.zeros(nc)
+    poles = poles * to_complex(omega_ref)
+
+    wn = jnp.abs(poles)
+    zeta = -jnp.real(poles) / wn
+    s_n = to_complex(wn) * 1j
+    term = residues / (s_n - poles)[:, None] + jnp.conj(residues) / (s_n - jnp.conj(poles))[:, None]
+
+    wh2 = jnp.sum((w * jnp.abs(h)) ** 2, axis=0)
+    res2 = jnp.sum(res**2, axis=1)
+    ch = model.channel_shape
+    return ModalFit(
+        frequency_hz=wn / _TWO_PI,
+        damping=zeta,
+        phase_deg=_wrap_phase_deg(term).reshape(n, *ch),
+        residues=residues.reshape(n, *ch),
+        poles=poles,
+        rigid_body=rigid.reshape(2, *ch),
+        upper_residual=upper.reshape(ch),
+        fit_error=jnp.sqrt(res2 / wh2).reshape(ch),
+        fit_error_total=jnp.sqrt(jnp.sum(res2) / jnp.sum(wh2)),
+        num_steps=jnp.asarray(num_steps),
+        result=result,
+    )
+
+
+def identify_modes(
+    freq_hz: Float[ArrayLike, " freq"],
+    frf: Complex[ArrayLike, " freq *channel"],
+    n_modes: int,
+    *,
+    rigid_body: int = 2,
+    upper_residual: bool = True,
+    weights: Float[ArrayLike, " freq *channel"] | None = None,
+    initial: ModalFit | None = None,
+    refine: bool = True,
+    vf_iterations: int = 10,
+    vf_extra_modes: int = 3,
+    solver: optx.AbstractLeastSquaresSolver | None = None,
+    max_steps: int = 256,
+    throw: bool = True,
+) -> ModalFit:
+    r"""Identify natural frequencies, damping ratios and resonant phases from an FRF.
+
+    Fits (paper Sec. 3.2; the modal data of Table 1)
+
+    .. math::
+
+        H_k(i\omega) \approx \sum_{r=1}^{n} \Big(\frac{R_{rk}}{i\omega-\lambda_r}
+        + \frac{R_{rk}^*}{i\omega-\lambda_r^*}\Big) + \frac{c_{0k}}{(i\omega)^2}
+        + \frac{c_{1k}}{i\omega} + d_k
+
+    by minimising :math:`\sum_{f,k} |w_{fk}(H^\text{fit}_k - H_k)(f)|^2`: vector fitting for
+    the start, then a variable-projection Levenberg–Marquardt refinement of the poles with
+    the residues solved exactly (see the ``fdjax._modal`` docstring for the reasons). Returns
+    the modes sorted by frequency with :math:`f_r = |\lambda_r|/2\pi`,
+    :math:`\zeta_r = -\mathrm{Re}\lambda_r/|\lambda_r|` and the resonant phase
+    :math:`\arg T_r(\omega_r)` of each mode's own term (DESIGN.md §2), in (-360°, 0°].
+
+    Jit-able and vmap-able over positions (fixed sizes; ``n_modes`` and the options are
+    static): ``jax.vmap(lambda h: identify_modes(freq_hz, h, 5))(frf_batch)``, or
+    :func:`identify_modes_batched` (faster on CPU). Differentiable with respect to ``frf``
+    (and ``weights``) through the refinement, by the implicit function theorem.
+    Needs ``2·n_freq ≥ 4(n_modes + vf_extra_modes) + n_fixed + 2`` (n_fixed: rigid-body and
+    residual terms).
+
+    **Arguments:**
+
+    - ``freq_hz``: frequency grid in Hz, positive and strictly increasing, shape ``(freq,)``.
+    - ``frf``: complex FRF with frequency on the first axis, shape ``(freq,)``,
+      ``(freq, n_out)`` or ``(freq, n_out, n_in)``; all channels share the poles.
+    - ``n_modes``: number of complex-conjugate mode pairs in the band.
+    - ``rigid_body``: number of poles at :math:`s=0`: 2 fits :math:`c_0/s^2 + c_1/s` (a
+      free axis such as a ball-screw drive), 1 only :math:`c_1/s`, 0 none.
+    - ``upper_residual``: fit the constant :math:`d_k` for modes above the band.
+    - ``weights``: positive weights :math:`w`, broadcastable to ``frf``; default
+      :math:`1/|H|` (relative error).
+    - ``initial``: a previous ``ModalFit`` (e.g. the neighbouring position) whose poles start
+      the refinement instead of vector fitting.
+    - ``refine``: ``False`` returns the vector-fitting estimate (residues solved for its
+      poles) without the nonlinear refinement.
+    - ``vf_iterations``: number of vector-fitting pole relocations (with the spare pairs).
+    - ``vf_extra_modes``: spare pole pairs of the vector-fitting stage (see the
+      ``fdjax._modal`` docstring); 0 fits exactly ``n_modes`` pairs.
+    - ``solver``: an ``optimistix`` least-squares solver, applied to the residual in
+      Marquardt-scaled pole parameters (unit: one column norm of the start Jacobian). The
+      default is Levenberg–Marquardt (``optx.AbstractGaussNewton`` with a damped Newton
+      descent solved by Cholesky and a classical trust region that also accepts steps at the
+      round-off of the loss), ``rtol = atol = 1e-8``: frequencies within ~1e-13 and damping
+      ratios within ~1e-11 (relative) of the converged optimum, in ~6 steps from the
+      vector-fitting start.
+    - ``max_steps``, ``throw``: passed to ``optimistix.least_squares``; with
+      ``throw=False`` a failed refinement is reported in ``ModalFit.result``.
+
+    **Returns:** a :class:`ModalFit`.
+    """
+    freq_hz, frf, weights, n_modes, static = _check_inputs(
+        "identify_modes", 0, freq_hz, frf, n_modes, rigid_body, upper_residual, weights,
+        initial, vf_iterations, vf_extra_modes, max_steps,
+    )
+    rigid_body, upper_residual, vf_iterations, vf_extra_modes, max_steps = static
+    if solver is None:
+        solver = _DEFAULT_SOLVER
+    model = _Model(
+        n_modes=n_modes,
+        rigid_body=rigid_body,
+        upper_residual=upper_residual,
+        channel_shape=tuple(frf.shape[1:]),
+    )
+    s, h, w, h_scale, omega_ref = _prepare(freq_hz, frf, weights)
+    if initial is None:
+        data = jax.lax.stop_gradient((s, h, w))
+        p0 = _start(*data, model, vf_iterations, vf_extra_modes)
+    else:
+        p0 = jax.lax.stop_gradient(initial.poles.astype(jnp.complex128) / to_complex(omega_ref))
+    return _finish(s, h, w, h_scale, omega_ref, p0, solver, model, bool(refine), max_steps,
+                   bool(throw))
+
+
+def _check_inputs(where, n_batch, freq_hz, frf, n_modes, rigid_body, upper_residual, weights,
+                  initial, vf_iterations, vf_extra_modes, max_steps):
+    """Shared validation of identify_modes(_batched); ``n_batch`` leading position axes."""
+    freq_hz = frequency_grid(freq_hz, f"{where}(freq_hz=...)")
+    n_freq = freq_hz.shape[0]
+    frf = jnp.asarray(frf)
+    if not jnp.issubdtype(frf.dtype, jnp.complexfloating):
+        raise ValueError(
+            f"`{where}(frf=...)` must be a complex FRF (H, not |H|), got dtype {frf.dtype}"
+        )
+    lead = "(n_positions, " if n_batch else "("
+    if frf.ndim - n_batch not in (1, 2, 3) or frf.shape[n_batch] != n_freq:
+        raise ValueError(
+            f"`{where}(frf=...)` must have shape {lead}n_freq), {lead}n_freq, n_out) or "
+            f"{lead}n_freq, n_out, n_in) with n_freq = len(freq_hz) = {n_freq}, got shape "
+            f"{frf.shape}"
+        )
+    frf = frf.astype(jnp.complex128)
+    frf = finite(frf, f"{where}(frf=...)")
+    rigid_body = static_int(rigid_body, f"{where}(rigid_body=...)", 0, 2)
+    if not isinstance(upper_residual, bool):
+        raise ValueError(f"`{where}(upper_residual=...)` must be a bool, got {upper_residual!r}")
+    n_fixed = rigid_body + int(upper_residual)
+    vf_iterations = static_int(vf_iterations, f"{where}(vf_iterations=...)", 0)
+    vf_extra_modes = static_int(vf_extra_modes, f"{where}(vf_extra_modes=...)", 0)
+    # Vector fitting solves, per channel, 2·n_freq real equations for
+    # 4(n_modes + vf_extra_modes) + n_fixed + 1 unknowns; it must be over-determined.
+    max_modes = (2 * n_freq - n_fixed - 2) // 4 - vf_extra_modes
+    if max_modes < 1:
+        raise ValueError(
+            f"`{where}(freq_hz=...)` has {n_freq} points, too few to fit one mode with "
+            f"vf_extra_modes={vf_extra_modes}; expected at least "
+            f"{(4 * (1 + vf_extra_modes) + n_fixed + 2 + 1) // 2} points"
+        )
+    if isinstance(n_modes, int | np.integer) and not isinstance(n_modes, bool):
+        if n_modes > max_modes:
+            raise ValueError(
+                f"`{where}(n_modes=...)` must be at most {max_modes} for {n_freq} frequency "
+                f"points (vf_extra_modes={vf_extra_modes}, {n_fixed} rigid/residual terms), "
+                f"got {n_modes}"
+            )
+    n_modes = static_int(n_modes, f"{where}(n_modes=...)", 1, max_modes)
+    max_steps = static_int(max_steps, f"{where}(max_steps=...)", 1)
+    if weights is not None:
+        weights = jnp.asarray(weights)
+        if jnp.issubdtype(weights.dtype, jnp.complexfloating):
+            raise ValueError(f"`{where}(weights=...)` must be real, got dtype {weights.dtype}")
+        weights = weights.astype(jnp.float64)
+        try:
+            weights = jnp.broadcast_to(weights, frf.shape)
+        except ValueError:
+            raise ValueError(
+                f"`{where}(weights=...)` must broadcast to frf's shape {frf.shape}, got "
+                f"shape {weights.shape}"
+            ) from None
+        weights = positive(weights, f"{where}(weights=...)")
+    if initial is not None:
+        expected = (*frf.shape[:n_batch], n_modes)
+        if not isinstance(initial, ModalFit):
+            raise ValueError(f"`{where}(initial=...)` must be a ModalFit, got {type(initial)}")
+        if initial.poles.shape != expected:
+            raise ValueError(
+                f"`{where}(initial=...)` must hold poles of shape {expected} (n_modes = "
+                f"{n_modes}), got poles of shape {initial.poles.shape}"
+            )
+    static = (rigid_body, upper_residual, vf_iterations, vf_extra_modes, max_steps)
+    return freq_hz, frf, weights, n_modes, static
+
+
+def identify_modes_batched(
+    freq_hz: Float[ArrayLike, " freq"],
+    frf: Complex[ArrayLike, "position freq *channel"],
+    n_modes: int,
+    *,
+    batch_size: int = 1,
+    rigid_body: int = 2,
+    upper_residual: bool = True,
+    weights: Float[ArrayLike, "position freq *channel"] | None = None,
+    initial: ModalFit | None = None,
+    refine: bool = True,
+    vf_iterations: int = 10,
+    vf_extra_modes: int = 3,
+    solver: optx.AbstractLeastSquaresSolver | None = None,
+    max_steps: int = 256,
+    throw: bool = True,
+) -> ModalFit:
+    r""":func:`identify_modes` at every position of a sweep (paper Sec. 3.2, Figs. 10–12).
+
+    ``frf`` carries a leading position axis, shape ``(n_positions, freq, *channel)``;
+    ``weights`` broadcasts to it and ``initial`` is a batched :class:`ModalFit` (e.g. the
+    previous sweep). Returns a :class:`ModalFit` whose arrays have a leading position axis,
+    ready for :func:`track_modes`.
+
+    One jitted program runs ``jax.lax.map`` over the positions, ``jax.vmap``-ing chunks of
+    ``batch_size`` positions. On CPU ``batch_size=1`` (a loop inside the program) is the
+    fastest: batched small linear algebra does not vectorise there, and a vmapped
+    refinement iterates until its slowest position has converged. On a GPU use a large
+    ``batch_size`` (``n_positions`` is the same as ``jax.vmap(identify_modes)``).
+    The other arguments are those of :func:`identify_modes`.
+    """
+    freq_hz, frf, weights, n_modes, static = _check_inputs(
+        "identify_modes_batched", 1, freq_hz, frf, n_modes, rigid_body, upper_residual,
+        weights, initial, vf_iterations, vf_extra_modes, max_steps,
+    )
+    batch_size = static_int(batch_size, "identify_modes_batched(batch_size=...)", 1)
+    rigid_body, upper_residual, vf_iterations, vf_extra_modes, max_steps = static
+    options = dict(
+        rigid_body=rigid_body, upper_residual=upper_residual, refine=bool(refine),
+        vf_iterations=vf_iterations, vf_extra_modes=vf_extra_modes,
+        solver=_DEFAULT_SOLVER if solver is None else solver, max_steps=max_steps,
+        throw=bool(throw),
+    )
+    return _identify_positions(freq_hz, frf, weights, initial, n_modes, batch_size, options)
+
+
+@eqx.filter_jit
+def _identify_positions(freq_hz, frf, weights, initial, n_modes, batch_size, options):
+    def one(args):
+        h, w, init = args
+        return identify_modes(freq_hz, h, n_modes, weights=w, initial=init, **options)
+
+    # A loop over the positions in chunks of batch_size; batch_size=1 maps without vmap (a
+    # batched non-symmetric eig, the vector-fitting zeros, has been seen to dead-lock on
+    # XLA:CPU).
+    return map_positions(one, (frf, weights, initial), has_eig=False, batch_size=batch_size)

@@ -1,0 +1,91 @@
+"""No recompilation for new values: positions and data reach the compiled programs as arrays.
+
+``eqx.filter_jit`` treats a Python float as static (one compile per value) and a closure over
+data as a new function (one compile per call).  Each test replaces a library's jitted core by
+the same function wrapped in ``eqx.debug.assert_max_traces(max_traces=1)`` and calls the public
+function with several values, as Python floats and as arrays: a second trace would raise.
+"""
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import fdjax
+from fdjax import _calibrate, _drive, _statespace
+
+POSITIONS = (0.1, 0.25, 0.4, 0.55, 0.7)
+
+
+def _trace_once(monkeypatch, module, jitted: str, impl):
+    """Make ``module.<jitted>`` the jitted ``impl`` that may be traced at most once."""
+    monkeypatch.setattr(module, jitted, eqx.filter_jit(eqx.debug.assert_max_traces(
+        impl, max_traces=1)))
+
+
+@pytest.fixture(scope="module")
+def drive():
+    return fdjax.reference_drive()
+
+
+def _values(positions):
+    """Each position as a Python float, then as an array (float64, 0-d)."""
+    return [*positions, *(jnp.asarray(y, jnp.float64) for y in positions)]
+
+
+def test_frf_compiles_once_over_positions(drive, monkeypatch):
+    _trace_once(monkeypatch, _drive, "_drive_entries_jit", _drive._drive_entries)
+    freq = np.geomspace(10.0, 2000.0, 16)
+    for y in _values(POSITIONS):
+        drive.frf(y, freq)
+    # 1-D arrays of one shape: the same program
+    drive.frf(np.array([0.3]), freq)
+    drive.frf(jnp.array([0.6]), freq)
+
+
+def test_frf_direct_compiles_once_over_positions(drive, monkeypatch):
+    _trace_once(monkeypatch, _drive, "_drive_frf_direct_jit", _drive._drive_frf_direct)
+    freq = np.geomspace(10.0, 2000.0, 4)
+    for y in _values(POSITIONS):
+        drive.frf_direct(y, freq)
+
+
+def test_fe_matrices_compiles_once_over_positions(drive, monkeypatch):
+    _trace_once(monkeypatch, _statespace, "_assemble_jit", _statespace._assemble)
+    for y in _values(POSITIONS):
+        fdjax.fe_matrices(drive, y)
+
+
+def test_state_space_compiles_once_over_positions(drive, monkeypatch):
+    _trace_once(monkeypatch, _statespace, "_realise_jit", _statespace._realise)
+    for y in _values(POSITIONS):
+        fdjax.state_space(drive, y, n_modes=8)
+
+
+def test_drive_modes_compiles_once_over_positions(drive, monkeypatch):
+    _trace_once(monkeypatch, _calibrate, "_modes_jit", _calibrate._modes_at)
+    _trace_once(monkeypatch, _calibrate, "_modes_batch_jit", _calibrate._modes_batch)
+    for y in _values(POSITIONS):
+        fdjax.drive_modes(drive, y, n_modes=4)
+    fdjax.drive_modes(drive, np.array([0.2, 0.3]), n_modes=4)
+    fdjax.drive_modes(drive, jnp.array([0.5, 0.6]), n_modes=4)
+
+
+def test_update_model_compiles_once_for_new_data(drive, monkeypatch):
+    """A second data set (target values, bounds, position, tolerances, visibility) of the same
+    shapes runs the compiled solve again: the data go through optimistix's ``args``."""
+    _trace_once(monkeypatch, _calibrate, "_update_jit", _calibrate._update)
+    m = fdjax.drive_modes(drive, 0.2, n_modes=4)
+    first = fdjax.update_model(
+        drive, fdjax.ModalData(m.frequency_hz[:3], m.damping[:3], m.phase_deg[:3]),
+        {"nut.stiffness": (1e8, 2e9), "carriage.pitch_stiffness": (1e6, 1e8)}, 0.2,
+        n_modes=4, max_steps=2,
+    )
+    second = fdjax.update_model(
+        drive, fdjax.ModalData(1.01 * m.frequency_hz[:3], 1.1 * m.damping[:3],
+                               m.phase_deg[:3] - 5.0),
+        {"nut.stiffness": (2e8, 1.8e9), "carriage.pitch_stiffness": (2e6, 5e7)}, 0.35,
+        n_modes=4, max_steps=2, tolerances=(0.02, 0.2, 10.0), visibility=0.1,
+    )
+    assert int(first.steps) <= 2 and int(second.steps) <= 2
+    assert first.parameters != second.parameters
