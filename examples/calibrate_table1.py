@@ -17,7 +17,7 @@ The bounds matter more than the optimiser: with a 100 N·m/rad "belt" coupling a
 pitch inertia (implausible) an earlier fit met 13 of 15 targets; inside these bounds the best fit
 meets 11 (see the README, "Calibration to Table 1", for the shortfall and why).
 
-Run: ``python examples/calibrate_table1.py`` (≈ 30–60 s on 2 CPU cores).  Point
+Run: ``python examples/calibrate_table1.py`` (≈ 1.5–3 min on 2 CPU cores).  Point
 ``fdjax.update_model`` at your own ``fdjax.ModalData`` to update a model of your drive.
 """
 
@@ -109,10 +109,22 @@ if __name__ == "__main__":
         v0, v = float(shipped.parameters[p]), float(res.parameters[p])
         at = "*" if min(abs(np.log(abs(v / lo))), abs(np.log(abs(v / hi)))) < 0.02 else " "
         print(f"  {p:28s} {v0:11.4g} -> {v:11.4g} {at} ({lo:.3g}, {hi:.3g})")
-    # cross-check: the modes identified from the exact FRF (no model internals)
-    f = np.linspace(20.0, 2000.0, 4000)
+    # cross-check: the modes identified from the exact FRF (no model internals).  Seven terms
+    # for the five modes below 2 kHz: one more for the 2.4 kHz mode above the band and one
+    # (ζ ≈ 1, below 1 Hz) that absorbs the damped rigid body's real pole at −c_eq/J_eq (1.1 Hz),
+    # which the fit's c₀/s² + c₁/s cannot represent.  That spare term makes the least-squares
+    # problem non-convex, so the best of three vector-fitting starts (by fit error) is taken,
+    # as in tests/test_calibrate.py.
+    f = np.geomspace(10.0, 2000.0, 2000)
     h = np.asarray(drive.frf([pos], f))[0, :, 1, 0]
-    fit = fdjax.identify_modes(f, h, 6)
-    print("\nidentify_modes on the exact h21 (20–2000 Hz, 6 modes): f, zeta, phase")
-    for a, b, c in zip(*(np.asarray(x) for x in (fit.frequency_hz, fit.damping, fit.phase_deg))):
-        print(f"  {a:8.1f} {b:.4f} {c:7.1f}")
+    fits = [
+        fdjax.identify_modes(f, h, 7, vf_iterations=i, vf_extra_modes=e, max_steps=1000,
+                             throw=False)
+        for i, e in ((10, 3), (5, 3), (20, 4))
+    ]
+    fit = min(fits, key=lambda x: float(x.fit_error))
+    print(f"\nidentify_modes on the exact h21 (10–2000 Hz, 7 terms, best of 3 starts, fit "
+          f"error {float(fit.fit_error):.1e}): mode, f, zeta, phase")
+    rows = zip(*(np.asarray(x)[1:6] for x in (fit.frequency_hz, fit.damping, fit.phase_deg)))
+    for i, (a, b, c) in enumerate(rows):
+        print(f"  {i + 1}  {a:8.1f} {b:.4f} {c:7.1f}")

@@ -159,9 +159,7 @@ def _check_method(method, fn: str) -> AbstractLoopModel:
 def _twin_modes(drive, n_modes, n_elements, fn):
     if n_modes is None:
         return int(count_modes(drive, n_elements=n_elements))
-    if isinstance(n_modes, bool) or not isinstance(n_modes, int | np.integer) or n_modes < 2:
-        raise ValueError(f"`{fn}(n_modes=...)` must be an int ≥ 2, got {n_modes!r}")
-    return int(n_modes)
+    return _checks.static_int(n_modes, f"{fn}(n_modes=...)", 2)
 
 
 def _plant(plant, position_m, fn: str, *, n_modes=None, n_elements=None, freq_hz=None,
@@ -173,7 +171,7 @@ def _plant(plant, position_m, fn: str, *, n_modes=None, n_elements=None, freq_hz
     if isinstance(plant, BallScrewDrive):
         if position_m is None:
             raise ValueError(f"`{fn}(position_m=...)` is required when the plant is a drive")
-        pos = plant._check_positions(position_m)
+        pos = plant._check_positions(position_m, fn)
         m = _twin_modes(plant, n_modes, n_el, fn)
         return "drive", (plant, pos, m, int(n_el)), jnp.ndim(position_m) == 0
     if position_m is not None and isinstance(plant, StateSpace):

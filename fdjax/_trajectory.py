@@ -244,9 +244,10 @@ def _position_range(traj: Trajectory):
     return jnp.min(candidates), jnp.max(candidates)
 
 
-def _scalar(value, where: str) -> float:
-    """A concrete real scalar as a Python float (the profile's structure is static)."""
-    return concrete_float(value, where)
+def _number(value, where: str, test) -> float:
+    """A concrete real scalar (the profile's structure is computed in Python) passing ``test``
+    (``finite``, ``positive`` or ``nonnegative``), as a Python float."""
+    return test(concrete_float(value, where), where)
 
 
 def _double_s_durations(h: float, v: float, a: float, j: float) -> tuple[float, float, float]:
@@ -303,7 +304,9 @@ def jerk_limited(
 
     **Arguments:**
 
-    - ``distance``: signed move length in m (negative moves backwards; 0 gives a pure dwell).
+    - ``distance``: signed move length in m (negative moves backwards; 0 gives a pure dwell;
+      300 mm is ``0.3``). The travel is checked where the move meets a drive (see
+      :meth:`Trajectory.position_range`).
     - ``v_max``, ``a_max``, ``j_max``: positive limits in m/s, m/s², m/s³.
     - ``start``: initial position in m.
     - ``dwell``: rest time appended after the move in s (a zero-jerk segment).
@@ -311,12 +314,13 @@ def jerk_limited(
     **Returns:** a ``Trajectory`` with 8 segments (zero-length ones where a phase is absent), of
     duration T + ``dwell``, ending at ``start + distance``.
     """
-    d = finite(_scalar(distance, "jerk_limited(distance=...)"), "jerk_limited(distance=...)")
-    v = positive(_scalar(v_max, "jerk_limited(v_max=...)"), "jerk_limited(v_max=...)")
-    a = positive(_scalar(a_max, "jerk_limited(a_max=...)"), "jerk_limited(a_max=...)")
-    j = positive(_scalar(j_max, "jerk_limited(j_max=...)"), "jerk_limited(j_max=...)")
-    r0 = finite(_scalar(start, "jerk_limited(start=...)"), "jerk_limited(start=...)")
-    rest = nonnegative(_scalar(dwell, "jerk_limited(dwell=...)"), "jerk_limited(dwell=...)")
+    fn = "jerk_limited({}=...)"
+    d = _number(distance, fn.format("distance"), finite)
+    v = _number(v_max, fn.format("v_max"), positive)
+    a = _number(a_max, fn.format("a_max"), positive)
+    j = _number(j_max, fn.format("j_max"), positive)
+    r0 = _number(start, fn.format("start"), finite)
+    rest = _number(dwell, fn.format("dwell"), nonnegative)
 
     tj, tc, tv = _double_s_durations(abs(d), v, a, j)
     durations = np.array([tj, tc, tj, tv, tj, tc, tj, rest], dtype=np.float64)
@@ -403,20 +407,21 @@ def reciprocating(
 
     **Arguments:**
 
-    - ``stroke``: signed stroke length in m (negative goes backwards first).
+    - ``stroke``: signed stroke length in m (negative goes backwards first; 5 mm is ``5e-3``).
+      A trajectory does not know the drive: whoever places it on one checks start + stroke
+      against the travel, e.g. with :meth:`Trajectory.position_range`.
     - ``v_max``, ``a_max``, ``j_max``: positive limits in m/s, m/s², m/s³.
     - ``cycles``: number of out-and-back cycles, an integer ≥ 1.
     - ``dwell``: rest after each stroke in s.
     - ``start``: initial (and final) position in m.
     """
     cycles = static_int(cycles, "reciprocating(cycles=...)", 1)
+    fn = "reciprocating({}=...)"
+    tests = {"stroke": finite, "v_max": positive, "a_max": positive, "j_max": positive}
     names = {"stroke": stroke, "v_max": v_max, "a_max": a_max, "j_max": j_max}
-    vals = {k: _scalar(x, f"reciprocating({k}=...)") for k, x in names.items()}
-    vals["stroke"] = finite(vals["stroke"], "reciprocating(stroke=...)")
-    for k in ("v_max", "a_max", "j_max"):
-        vals[k] = positive(vals[k], f"reciprocating({k}=...)")
-    rest = nonnegative(_scalar(dwell, "reciprocating(dwell=...)"), "reciprocating(dwell=...)")
-    r0 = finite(_scalar(start, "reciprocating(start=...)"), "reciprocating(start=...)")
+    vals = {k: _number(x, fn.format(k), tests[k]) for k, x in names.items()}
+    rest = _number(dwell, fn.format("dwell"), nonnegative)
+    r0 = _number(start, fn.format("start"), finite)
 
     limits = (vals["v_max"], vals["a_max"], vals["j_max"])
     out = jerk_limited(vals["stroke"], *limits, start=r0, dwell=rest)

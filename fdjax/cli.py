@@ -17,17 +17,26 @@ import json
 import os
 import sys
 import time
+from typing import TYPE_CHECKING
 
-import numpy as np
+if TYPE_CHECKING:
+    import numpy as np
+
+# Only the standard library at module level: `fdjax --help` and argparse's errors answer before
+# numpy, JAX or matplotlib load; each command imports what it needs.
 
 
 def _peaks(f, a, fmin, fmax):
+    import numpy as np
+
     k = np.flatnonzero((a[1:-1] > a[:-2]) & (a[1:-1] > a[2:])) + 1
     return f[k[(f[k] >= fmin) & (f[k] <= fmax)]]
 
 
 def three_mass_figures(out: str) -> np.ndarray:
     """Figs. 2, 3 and 5 of the 3M2S; returns its natural frequencies (Hz)."""
+    import numpy as np
+
     import fdjax
     from fdjax import plots
 
@@ -53,6 +62,8 @@ def three_mass_figures(out: str) -> np.ndarray:
 
 def drive_figures(out: str, n_positions: int = 61) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Figs. 10, 11 and 12 of the reference drive; returns (positions, freq, H)."""
+    import numpy as np
+
     import fdjax
     from fdjax import plots
 
@@ -73,88 +84,68 @@ def drive_figures(out: str, n_positions: int = 61) -> tuple[np.ndarray, np.ndarr
     return pos, f, H
 
 
-def loop_figures(out: str, pos: np.ndarray, f: np.ndarray, H: np.ndarray) -> None:
-    """Fig. 14: the default double loop without and with a peak filter on the axial mode.
+def loop_figures(out: str, pos, f, H) -> None:
+    """Fig. 14: the default double loop without and with a peak filter on the axial mode, on
+    the exact FRF with the exact delay e^{−iωτ} (``Continuous()``, the reference servo).
 
-    The hand-set peak filter of :func:`hand_set_mcm` (K = 0.5 on mode 3, 131 Hz, ξ = 0.3,
-    φ = −60°) until the tuning issue replaces it.
+    The peak filter of :func:`fdjax._control._reference.reference_mcm` (K = 0.5 on mode 3,
+    131 Hz, ξ = 0.3, φ = −60°) until the tuning issue replaces it.
     """
+    import numpy as np
+
     import fdjax
     from fdjax import plots
+    from fdjax._control._reference import reference_mcm, reference_servo
 
+    drive = fdjax.reference_drive()
     fam = np.linspace(0, len(pos) - 1, 7).round().astype(int)
-    peak = hand_set_mcm().peak
-    without = fdjax.open_loop(fdjax.DoubleLoop(), H[fam], f)
-    with_pf = fdjax.open_loop(fdjax.DoubleLoop(mcm=fdjax.MCM(peak)), H[fam], f)
+    how = dict(servo=reference_servo(), method=fdjax.Continuous(),
+               screw_ratio=drive.screw.ratio)
+    peak = reference_mcm().peak
+    without = fdjax.open_loop(fdjax.DoubleLoop(), H[fam], f, **how)
+    with_pf = fdjax.open_loop(fdjax.DoubleLoop(mcm=fdjax.MCM(peak)), H[fam], f, **how)
     plots.plot_peak_filter_effect(
-        f, pos[fam], without.inner, with_pf.inner, loop_label="inner (speed) loop $L_v$",
+        f, pos[fam], without.speed, with_pf.speed, loop_label="speed loop $L_v$",
         radius=2.5, band_hz=(110.0, 155.0),
     ).savefig(os.path.join(out, "fig14_peak_filter.png"), dpi=90)
 
 
 FIG16_POSITION_M = 0.115  # the paper's Figs. 16-17 are at Y_table = 115 mm
-SERVO_PERIOD_S = 1.25e-4  # 8 kHz; tau = 250 us is two periods
-
-
-def hand_set_mcm():
-    """The hand-set MCM of Figs. 14 and 17 (the tuning issue replaces it): a peak filter on
-    Table 1's mode 3 (131 Hz at 115 mm, the peak filter's target) and a notch on mode 5
-    (1508 Hz, the notch's target)."""
-    import fdjax
-
-    return fdjax.MCM(
-        fdjax.PeakFilter(0.5, 2 * np.pi * 131.0, 0.3, np.radians(-60.0)),
-        fdjax.NotchFilter(2 * np.pi * 1508.0, 0.05, 0.5),
-    )
-
-
-def hand_set_pid():
-    """The PID of Fig. 16: the default gains × 3 (gain margin 3 at every position, phase
-    margin 71°) — stiffer than the soft default, as a tuned baseline would be."""
-    import fdjax
-
-    base = fdjax.PIDLoop()
-    return dict(kp=3 * base.kp, ki=3 * base.ki, kd=3 * base.kd, wd=base.wd)
-
-
-def rigid_feedforward(drive, k_motor):
-    """PID feed-forward of the rigid drive, u = (c_eq ṙ + J_eq r̈)/(k_motor i_sc): the inertia
-    and viscous friction reflected to the motor (rotor, hubs, screw torsion, table m i_sc²).
-    Returns (k_ffv in A·s/m, k_ffa in A·s²/m)."""
-    r, c, i_sc = drive.rotary, drive.carriage, drive.screw.ratio
-    rho_j = drive.screw.section()[1]
-    J = (r.motor_inertia + r.drive_end_inertia + r.free_end_inertia
-         + rho_j * drive.screw.length + c.mass * i_sc**2)
-    C = r.motor_damping + r.drive_end_damping + r.free_end_damping + c.axial_damping * i_sc**2
-    return float(C / (k_motor * i_sc)), float(J / (k_motor * i_sc))
 
 
 def simulation_figures(out: str) -> dict:
     """Figs. 16-17: PID and the double loop with MCM, each without and with feed-forward
-    control (FFC), tracking the short-stroke reciprocating motion at Y_table = 115 mm;
-    sampled-data simulation at 8 kHz.  Returns the RMS scale errors (m)."""
+    control (FFC), tracking the short-stroke reciprocating motion at Y_table = 115 mm; the
+    sampled-data loop of the reference servo (8 kHz, d = 2).  Returns the RMS scale errors (m)."""
     import fdjax
     from fdjax import plots
+    from fdjax._control._reference import (
+        reference_mcm,
+        reference_pid,
+        reference_servo,
+        rigid_feedforward,
+    )
 
     drive = fdjax.reference_drive()
+    servo = reference_servo()
     ref = fdjax.reciprocating(cycles=2)
-    method = fdjax.SampledData(SERVO_PERIOD_S)
-    run = dict(position_m=FIG16_POSITION_M, duration=0.5)
-    pid = hand_set_pid()
-    k_ffv, k_ffa = rigid_feedforward(drive, fdjax.PIDLoop().k_motor)
+    method = fdjax.SampledData()
+    run = dict(servo=servo, position_m=FIG16_POSITION_M, duration=0.5)
+    k_ffv, k_ffa = rigid_feedforward(drive, servo)
     pid_runs = {
-        "PID w/o FFC": fdjax.simulate(fdjax.PIDLoop(**pid), drive, ref, method, **run),
-        "PID w/ FFC": fdjax.simulate(fdjax.PIDLoop(**pid, k_ffv=k_ffv, k_ffa=k_ffa), drive,
-                                     ref, method, **run),
+        "PID w/o FFC": fdjax.simulate(reference_pid(), drive, ref, method, **run),
+        "PID w/ FFC": fdjax.simulate(reference_pid(k_ffv=k_ffv, k_ffa=k_ffa), drive, ref,
+                                     method, **run),
     }
-    mcm = hand_set_mcm()
+    mcm = reference_mcm()
     mcm_runs = {
         "P/PI + MCM w/o FFC": fdjax.simulate(fdjax.DoubleLoop(mcm=mcm, k_ffv=0.0, k_ffa=0.0),
                                              drive, ref, method, **run),
         "P/PI + MCM w/ FFC": fdjax.simulate(fdjax.DoubleLoop(mcm=mcm), drive, ref, method,
                                             **run),
     }
-    where = f"$Y_{{table}}$ = {FIG16_POSITION_M * 1e3:.0f} mm, sampled data at 8 kHz"
+    rate = 1e-3 / servo.period
+    where = f"$Y_{{table}}$ = {FIG16_POSITION_M * 1e3:.0f} mm, sampled data at {rate:.0f} kHz"
     plots.plot_tracking(pid_runs, title=f"Tracking with PID control, {where} (paper Fig. 16)",
                         ).savefig(os.path.join(out, "fig16_pid_tracking.png"), dpi=100)
     plots.plot_tracking(mcm_runs, title=f"Tracking with the double loop and MCM, {where} "
@@ -169,6 +160,8 @@ TABLE_1_TOLERANCE = {"frequency": 0.03, "damping": 0.25, "phase_deg": 15.0}
 
 def table_1_comparison(drive) -> dict:
     """The reference drive's five lowest flexible modes of h21 at 115 mm against Table 1."""
+    import numpy as np
+
     import fdjax
 
     T = fdjax.TABLE_1
@@ -191,61 +184,108 @@ def table_1_comparison(drive) -> dict:
             "modes": rows, "targets_met": met, "targets": 15}
 
 
-def loop_summary(pos: np.ndarray, f: np.ndarray, H: np.ndarray) -> dict:
-    """Margins of the default double loop over the travel, on the exact FRF."""
+def _margins_json(m) -> dict:
+    import numpy as np
+
+    return {k: np.asarray(getattr(m, k)).tolist() for k in (
+        "gain_margin", "phase_margin_deg", "modulus_margin", "gain_crossover_hz",
+        "phase_crossover_hz")}
+
+
+def loop_summary(pos, f, H) -> dict:
+    """Margins of the default double loop over the travel, of the speed loop (broken at the
+    speed feedback, position loop open) and of the position loop (broken at the scale, speed
+    loop closed), in two loop models:
+
+    * ``sampled``: the loop as the reference servo runs it (``SampledData()``: ZOH twin at each
+      position, discrete law, two whole samples of delay), on a grid up to just below Nyquist;
+    * ``continuous``: the continuous loop with the exact delay e^{−iωτ}, τ = d·T = 250 µs
+      (``Continuous()``), on the exact FRF ``H`` (the grid ``f``).
+    """
+    import numpy as np
+
     import fdjax
+    from fdjax._control._reference import reference_servo
 
-    m = fdjax.loop_margins(fdjax.DoubleLoop(), H, f)
+    drive = fdjax.reference_drive()
+    servo = reference_servo()
+    nyquist = 0.5 / servo.period
+    f_s = np.geomspace(5.0, 0.995 * nyquist, 1500)
+    sampled = fdjax.loop_margins(fdjax.DoubleLoop(), drive, f_s, servo=servo,
+                                 method=fdjax.SampledData(), position_m=pos)
+    continuous = fdjax.loop_margins(fdjax.DoubleLoop(), H, f, servo=servo,
+                                    method=fdjax.Continuous(), screw_ratio=drive.screw.ratio)
 
-    def margins(x):
-        return {"gain_margin": np.asarray(x.gain_margin).tolist(),
-                "phase_margin_deg": np.asarray(x.phase_margin_deg).tolist(),
-                "modulus_margin": np.asarray(x.modulus_margin).tolist(),
-                "gain_crossover_hz": np.asarray(x.gain_crossover_hz).tolist()}
+    def loops(m, model, grid):
+        return {"model": model, "freq_hz": [float(grid[0]), float(grid[-1])],
+                "speed": _margins_json(m.speed), "position": _margins_json(m.position)}
 
-    return {"positions_m": pos.tolist(), "inner": margins(m.inner), "outer": margins(m.outer)}
+    rate = f"{1e-3 / servo.period:.0f} kHz, d = {servo.delay_samples}"
+    return {
+        "positions_m": np.asarray(pos).tolist(),
+        "servo": {"period_s": servo.period, "delay_samples": servo.delay_samples,
+                  "tau_s": servo.tau, "k_motor": float(servo.k_motor)},
+        "sampled": loops(sampled, f"SampledData(): the loop as the servo runs it ({rate}), on "
+                         "the twin at each position", f_s),
+        "continuous": loops(continuous, f"Continuous(): exact delay e^(-i w tau), tau = "
+                            f"{servo.tau * 1e6:.0f} us, on the exact FRF", f),
+    }
 
 
 def discretisation_summary() -> dict:
-    """The hand-set MCM at the servo rate: largest relative error below Nyquist/4."""
-    mcm = hand_set_mcm()
-    f = np.linspace(0.5, 1 / (8 * SERVO_PERIOD_S), 4000)
+    """The reference MCM at the servo rate: largest relative error below Nyquist/4."""
+    import numpy as np
+
+    from fdjax._control._reference import reference_mcm, reference_servo
+
+    mcm = reference_mcm()
+    period = reference_servo().period
+    f = np.linspace(0.5, 1 / (8 * period), 4000)
     gc = np.asarray(mcm.frf(f))
-    err = {m: float(np.max(np.abs(np.asarray(mcm.discretize(SERVO_PERIOD_S, m).frf(f)) - gc)
+    err = {m: float(np.max(np.abs(np.asarray(mcm.discretize(period, m).frf(f)) - gc)
                            / np.abs(gc))) for m in ("fitted", "tustin")}
-    return {"servo_rate_hz": 1 / SERVO_PERIOD_S, "band_hz": [0.5, float(f[-1])],
+    return {"servo_rate_hz": 1 / period, "band_hz": [0.5, float(f[-1])],
             "max_relative_error": err}
+
+
+def _loop_line(name: str, m: dict) -> str:
+    return (f"speed loop GM ≥ {min(m['speed']['gain_margin']):.2f}, PM ≥ "
+            f"{min(m['speed']['phase_margin_deg']):.1f}°; position loop GM ≥ "
+            f"{min(m['position']['gain_margin']):.2f}, PM ≥ "
+            f"{min(m['position']['phase_margin_deg']):.1f}° ({name})")
 
 
 def reproduce(out: str, quick: bool = False) -> dict:
     """The whole chain on the reference drive: every figure so far, and ``summary.json``.
 
     ``quick`` sweeps 13 table positions instead of 61 (Figs. 10-12, 14 and the margins)."""
+    import numpy as np
+
     import fdjax
+    from fdjax._control._reference import reference_servo
 
     start = time.perf_counter()
     os.makedirs(out, exist_ok=True)
     fn = three_mass_figures(out)
     print("3M2S (paper Sec. 2): natural frequencies " + ", ".join(f"{x:.1f} Hz" for x in fn[1:]))
     drive = fdjax.reference_drive()
+    servo = reference_servo()
     pos, f, H = drive_figures(out, n_positions=13 if quick else 61)
     table_1 = table_1_comparison(drive)
     print(f"Reference drive vs Table 1 at 115 mm: {table_1['targets_met']} of 15 targets met "
           "(frequency ±3 %, damping ±25 %, phase ±15°)")
     loop_figures(out, pos, f, H)
     loop = loop_summary(pos, f, H)
-    print("Default double loop over the travel: speed loop GM ≥ "
-          f"{min(loop['inner']['gain_margin']):.2f}, PM ≥ "
-          f"{min(loop['inner']['phase_margin_deg']):.1f}°; position loop GM ≥ "
-          f"{min(loop['outer']['gain_margin']):.2f}, PM ≥ "
-          f"{min(loop['outer']['phase_margin_deg']):.1f}°")
+    print("Default double loop over the travel:")
+    print("  " + _loop_line("sampled, as the servo runs it", loop["sampled"]))
+    print("  " + _loop_line("continuous, exact delay", loop["continuous"]))
     rms = simulation_figures(out)
     print(f"Reciprocating motion at {FIG16_POSITION_M * 1e3:.0f} mm, RMS scale error (µm): "
           + ", ".join(f"{k} {v * 1e6:.3g}" for k, v in rms.items()))
     disc = discretisation_summary()
     err = disc["max_relative_error"]
-    print(f"Hand-set MCM at 8 kHz, error below Nyquist/4: fitted {err['fitted'] * 100:.2f} %, "
-          f"Tustin {err['tustin'] * 100:.1f} %")
+    print(f"Reference MCM at {1e-3 / servo.period:.0f} kHz, error below Nyquist/4: fitted "
+          f"{err['fitted'] * 100:.2f} %, Tustin {err['tustin'] * 100:.1f} %")
     print("Reference drive, peaks of |h21| = |x2/T1| (Hz):")
     for p in (0, len(pos) // 2, len(pos) - 1):
         pk = _peaks(f, np.abs(H[p, :, 1, 0]), 20.0, 3000.0)
@@ -256,7 +296,8 @@ def reproduce(out: str, quick: bool = False) -> dict:
         "three_mass": {"natural_frequencies_hz": fn[1:].tolist()},
         "table_1": table_1,
         "double_loop": loop,
-        "tracking": {"position_m": FIG16_POSITION_M, "servo_rate_hz": 1 / SERVO_PERIOD_S,
+        "tracking": {"position_m": FIG16_POSITION_M, "servo_rate_hz": 1 / servo.period,
+                     "delay_samples": servo.delay_samples, "method": "SampledData()",
                      "motion": "reciprocating, 5 mm, 0.1 m/s, 2 m/s², 200 m/s³, 2 cycles",
                      "rms_scale_error_m": rms},
         "mcm_discretisation": disc,
@@ -271,6 +312,8 @@ def reproduce(out: str, quick: bool = False) -> dict:
 
 def modes(out: str | None, n_positions: int, n_modes: int, source: str) -> dict:
     """Modes of h21 over the travel, identified from the FRF (``fit``) or the twin (``model``)."""
+    import numpy as np
+
     import fdjax
 
     drive = fdjax.reference_drive()
@@ -306,23 +349,68 @@ def modes(out: str | None, n_positions: int, n_modes: int, source: str) -> dict:
     return {"positions_m": pos, "frequency_hz": fr, "damping": z, "phase_deg": ph}
 
 
-def main(argv=None) -> int:
+def _count(what: str, minimum: int):
+    """An argparse type for a count option; its error says what is counted (argparse prefixes
+    the option's name)."""
+
+    def parse(text: str) -> int:
+        try:
+            n = int(text)
+        except ValueError:
+            n = None
+        if n is None or n < minimum:
+            raise argparse.ArgumentTypeError(
+                f"expected {what}, an integer ≥ {minimum}; got {text!r}"
+            )
+        return n
+
+    return parse
+
+
+COMMANDS = ("reproduce", "demo", "figures", "modes")
+
+
+def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="fdjax", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    sub = parser.add_subparsers(dest="command", required=True)
-    p = sub.add_parser("reproduce", help="the whole chain: figures and summary.json")
+                                     formatter_class=argparse.RawDescriptionHelpFormatter,
+                                     allow_abbrev=False)
+    sub = parser.add_subparsers(dest="command", required=True, metavar="{" + ",".join(COMMANDS)
+                                + "}")
+    p = sub.add_parser("reproduce", help="the whole chain: figures and summary.json",
+                       allow_abbrev=False)
     p.add_argument("--out", default="build/reproduce", help="output folder")
     p.add_argument("--quick", action="store_true", help="13 table positions instead of 61")
-    p = sub.add_parser("demo", help="reproduce --quick (what make demo runs)")
+    p = sub.add_parser("demo", help="reproduce --quick (what make demo runs)", allow_abbrev=False)
     p.add_argument("--out", default="build/demo", help="output folder (default build/demo)")
-    p = sub.add_parser("figures", help="the paper's dynamics figures")
+    p = sub.add_parser("figures", help="the paper's dynamics figures", allow_abbrev=False)
     p.add_argument("--out", default="build/figures", help="output folder")
-    p = sub.add_parser("modes", help="modes of h21 over the travel (table, CSV, JSON)")
+    p = sub.add_parser("modes", help="modes of h21 over the travel (table, CSV, JSON)",
+                       allow_abbrev=False)
     p.add_argument("--out", default=None, help="folder for modes.csv and modes.json")
-    p.add_argument("--positions", type=int, default=13, help="positions over the travel")
-    p.add_argument("--n-modes", type=int, default=6, help="modes to identify")
+    p.add_argument("--positions", type=_count("the number of table positions spread over the "
+                                              "travel (a count, not a position in m or mm)", 2),
+                   default=13, metavar="N",
+                   help="how many table positions, spread evenly over the travel (a count, "
+                        "not a position; default 13)")
+    p.add_argument("--n-modes", type=_count("the number of modes", 1), default=6, metavar="N",
+                   help="modes to identify (default 6)")
     p.add_argument("--source", choices=("fit", "model"), default="fit",
                    help="identify from the FRF (fit) or eigen-analysis of the twin (model)")
+    return parser
+
+
+def main(argv=None) -> int:
+    """Run the command line on ``argv`` (default ``sys.argv[1:]``); returns the exit status."""
+    parser = _parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    word = next((a for a in argv if not a.startswith("-")), None)
+    if word is not None and word not in COMMANDS and not any(a in ("-h", "--help") for a in
+                                                             argv[:argv.index(word)]):
+        import difflib
+
+        close = difflib.get_close_matches(word, COMMANDS, n=1)
+        hint = f"; did you mean {close[0]!r}?" if close else ""
+        parser.error(f"unknown command {word!r}{hint} (commands: {', '.join(COMMANDS)})")
     args = parser.parse_args(argv)
     if args.command == "reproduce":
         reproduce(args.out, quick=args.quick)
@@ -336,8 +424,6 @@ def main(argv=None) -> int:
         simulation_figures(args.out)
         print(f"figures written to {args.out}/")
     elif args.command == "modes":
-        if args.positions < 2 or args.n_modes < 1:
-            parser.error("--positions must be ≥ 2 and --n-modes ≥ 1")
         modes(args.out, args.positions, args.n_modes, args.source)
     return 0
 

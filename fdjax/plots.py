@@ -225,7 +225,7 @@ def plot_resonant_phase(position_m, frequency_hz, phase_deg, *, title="h21 = x2/
 
 
 def plot_peak_filter_effect(
-    freq_hz, position_m, L_without, L_with, *, loop_label="inner (speed) loop $L_v$",
+    freq_hz, position_m, L_without, L_with, *, loop_label="speed loop $L_v$",
     radius=3.0, band_hz=None,
 ):
     """Paper Fig. 14: an open loop without and with a peak filter on the target mode, over
@@ -241,7 +241,10 @@ def plot_peak_filter_effect(
         freq_hz: frequency grid (Hz), shape (n_freq,).
         position_m: table positions (m), shape (n_pos,).
         L_without, L_with: the open loop on that grid without / with the peak filter,
-            shape (n_pos, n_freq), e.g. ``fdjax.open_loop(loop, H, freq_hz).inner``.
+            shape (n_pos, n_freq), e.g. the ``speed`` (or ``position``, ``plant_input``) loop
+            of ``fdjax.open_loop(loop, H, freq_hz, method=fdjax.Continuous(),
+            screw_ratio=drive.screw.ratio)`` on an FRF, or of ``fdjax.open_loop(loop, drive,
+            freq_hz, position_m=...)`` (the sampled loop, below Nyquist).
         loop_label: which loop, for the title.
         radius: half-width of the Nyquist window.
         band_hz: optional (f_lo, f_hi) of the target mode's band, shaded on the Bode plots.

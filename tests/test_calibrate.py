@@ -126,9 +126,9 @@ def _exact_poles(drive, pos, start):
     ``start`` (rad/s, per position and mode), and the last relative Newton step."""
 
     def one(y, lam):
-        g = lambda w: 1.0 / drive.receptance(y, w)[1, 0]  # noqa: E731
+        g = lambda w: 1.0 / drive.receptance(y, w)[1, 0]
         dg = jax.grad(g, holomorphic=True)
-        step = lambda w: w - g(w) / dg(w)  # noqa: E731
+        step = lambda w: w - g(w) / dg(w)
         w = jax.lax.fori_loop(0, 30, lambda _, w: step(w), lam / 1j)
         return 1j * w, jnp.abs(step(w) - w) / jnp.abs(w)
 

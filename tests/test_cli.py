@@ -1,12 +1,34 @@
-"""The command line and the figures it writes."""
+"""The command line, the figures it writes, and the reference settings it reproduces them with
+(:mod:`fdjax._control._reference`)."""
 
+import ast
+import json
 import os
+import pathlib
+import subprocess
+import sys
 
+import equinox as eqx
+import jax
 import numpy as np
+import pytest
 
+import fdjax
 from fdjax import cli
+from fdjax._control._reference import (
+    reference_mcm,
+    reference_pid,
+    reference_servo,
+    rigid_feedforward,
+)
+
+EPS = np.finfo(np.float64).eps
+CLI_PATH = pathlib.Path(cli.__file__)
+REFERENCE_PATH = pathlib.Path(fdjax.__file__).parent / "_control" / "_reference.py"
+HEAVY = ("numpy", "jax", "jaxlib", "equinox", "diffrax", "optimistix", "matplotlib", "scipy")
 
 
+# ---------------------------------------------------------------------- commands
 def test_demo_writes_figures(tmp_path, capsys):
     out = tmp_path / "demo"
     assert cli.main(["demo", "--out", str(out)]) == 0
@@ -20,9 +42,8 @@ def test_demo_writes_figures(tmp_path, capsys):
     assert "103.7 Hz, 154.5 Hz" in text
     assert "Y_table =   100 mm" in text
     assert "RMS scale error" in text
+    assert "(sampled, as the servo runs it)" in text and "(continuous, exact delay)" in text
     # summary.json: the numbers the chain produced, consistent with what the tests establish
-    import json
-
     s = json.loads((out / "summary.json").read_text())
     assert s["quick"] is True
     np.testing.assert_allclose(s["three_mass"]["natural_frequencies_hz"], [103.7, 154.5],
@@ -31,17 +52,30 @@ def test_demo_writes_figures(tmp_path, capsys):
     assert len(s["table_1"]["modes"]) == 5
     loop = s["double_loop"]
     assert len(loop["positions_m"]) == 13
-    assert min(loop["inner"]["gain_margin"]) > 1 and min(loop["outer"]["gain_margin"]) > 1
-    assert set(s["tracking"]["rms_scale_error_m"]) == {
-        "PID w/o FFC", "PID w/ FFC", "P/PI + MCM w/o FFC", "P/PI + MCM w/ FFC"}
+    assert loop["servo"] == {"period_s": 1.25e-4, "delay_samples": 2, "tau_s": 2.5e-4,
+                             "k_motor": 1.2}
+    for model in ("sampled", "continuous"):
+        for name in ("speed", "position"):
+            m = loop[model][name]
+            assert len(m["gain_margin"]) == 13, (model, name)
+            assert min(m["gain_margin"]) > 1 and min(m["phase_margin_deg"]) > 30, (model, name)
+    # the sampled loop adds the ZOH's and the backward difference's half-sample lags to τ:
+    # its speed loop crosses −180° lower, where the gain is higher
+    assert (max(loop["sampled"]["speed"]["phase_crossover_hz"])
+            < min(loop["continuous"]["speed"]["phase_crossover_hz"]))
+    assert max(loop["sampled"]["speed"]["gain_margin"]) < min(
+        loop["continuous"]["speed"]["gain_margin"])
+    assert loop["sampled"]["freq_hz"][1] < 0.5 / 1.25e-4  # below Nyquist
+    rms = s["tracking"]["rms_scale_error_m"]
+    assert set(rms) == {"PID w/o FFC", "PID w/ FFC", "P/PI + MCM w/o FFC", "P/PI + MCM w/ FFC"}
+    assert rms["PID w/ FFC"] < rms["PID w/o FFC"] / 10
+    assert rms["P/PI + MCM w/ FFC"] < rms["P/PI + MCM w/o FFC"] / 10
     err = s["mcm_discretisation"]["max_relative_error"]
     assert err["fitted"] < 0.01 < 0.05 < err["tustin"]
     assert sorted(s["figures"]) == sorted(p.name for p in out.glob("*.png"))
 
 
 def test_modes_writes_table(tmp_path, capsys):
-    import json
-
     assert cli.main(["modes", "--out", str(tmp_path), "--positions", "3", "--n-modes", "4",
                      "--source", "model"]) == 0
     data = json.loads((tmp_path / "modes.json").read_text())
@@ -50,3 +84,192 @@ def test_modes_writes_table(tmp_path, capsys):
     assert first["position_mm"] == 100.0 and 45.0 < first["frequency_hz"] < 55.0  # 49.5 Hz
     assert (tmp_path / "modes.csv").read_text().startswith("position_mm,mode,frequency_hz")
     assert "Modes of h21" in capsys.readouterr().out
+
+
+# ---------------------------------------------------------------------- argument errors
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["reprodce"], "unknown command 'reprodce'; did you mean 'reproduce'?"),
+        (["figure", "--out", "x"], "unknown command 'figure'; did you mean 'figures'?"),
+        (["plot"], "unknown command 'plot' (commands: reproduce, demo, figures, modes)"),
+        (["reproduce", "--quik"], "unrecognized arguments: --quik"),
+        (["reproduce", "--qui"], "unrecognized arguments: --qui"),  # no silent abbreviations
+        (["modes", "--source", "data"], "argument --source: invalid choice: 'data'"),
+        # --positions is a count: a position typed in mm (or m) says so
+        (["modes", "--positions", "115mm"],
+         "argument --positions: expected the number of table positions spread over the travel "
+         "(a count, not a position in m or mm), an integer ≥ 2; got '115mm'"),
+        (["modes", "--positions", "0.115"], "a count, not a position in m or mm"),
+        (["modes", "--positions", "1"], "an integer ≥ 2; got '1'"),
+        (["modes", "--n-modes", "0"],
+         "argument --n-modes: expected the number of modes, an integer ≥ 1; got '0'"),
+        ([], "the following arguments are required: {reproduce,demo,figures,modes}"),
+    ],
+)
+def test_argument_errors(argv, message, capsys):
+    with pytest.raises(SystemExit) as exc:
+        cli.main(argv)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert message in err, err
+
+
+def test_help_lists_the_commands(capsys):
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["--help"])
+    assert exc.value.code == 0
+    out = capsys.readouterr().out
+    for command in cli.COMMANDS:
+        assert f"fdjax {command}" in out
+
+
+# ---------------------------------------------------------------------- --help is light
+_PROBE = """
+import json, sys
+{load}
+try:
+    cli.main(["--help"])
+except SystemExit as exc:
+    code = exc.code
+print(json.dumps({{"code": code, "heavy": [m for m in {heavy!r} if m in sys.modules]}}))
+"""
+
+
+def _probe(load: str) -> dict:
+    src = _PROBE.format(load=load, heavy=HEAVY)
+    run = subprocess.run([sys.executable, "-c", src], capture_output=True, text=True,
+                         timeout=120, check=True)
+    return json.loads(run.stdout.strip().splitlines()[-1])
+
+
+def test_cli_module_imports_only_the_standard_library():
+    """cli.py on its own (loaded from its file, without the package init): ``--help`` answers
+    with none of numpy, JAX, equinox, diffrax or matplotlib imported."""
+    load = ("import importlib.util\n"
+            f"spec = importlib.util.spec_from_file_location('fdjax_cli_alone', {str(CLI_PATH)!r})\n"
+            "cli = importlib.util.module_from_spec(spec)\n"
+            "spec.loader.exec_module(cli)")
+    got = _probe(load)
+    assert got == {"code": 0, "heavy": []}
+
+
+def test_cli_module_level_imports_are_standard_library():
+    tree = ast.parse(CLI_PATH.read_text())
+    names = []
+    for node in tree.body:  # module level only; the commands import inside their functions
+        if isinstance(node, ast.Import):
+            names += [a.name.split(".")[0] for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            names.append((node.module or "").split(".")[0] if node.level == 0 else ".")
+    assert set(names) <= {"__future__", "argparse", "csv", "json", "os", "sys", "time",
+                          "typing"}, names
+
+
+def test_fdjax_help_does_not_import_jax():
+    """``fdjax --help`` through the installed package: nothing heavy once the package init is
+    lazy.  Skipped while ``fdjax/__init__.py`` itself imports JAX (then the time is the
+    package's, not the command line's)."""
+    eager = _probe("import fdjax\nfrom fdjax import cli")
+    heavy = [m for m in eager["heavy"] if m in ("jax", "equinox", "diffrax", "matplotlib")]
+    if heavy:
+        bare = subprocess.run([sys.executable, "-c", "import sys, fdjax; print('jax' in "
+                               "sys.modules)"], capture_output=True, text=True, timeout=120)
+        if bare.stdout.strip() == "True":
+            pytest.skip("fdjax/__init__.py imports JAX eagerly; cli.py itself is checked by "
+                        "test_cli_module_imports_only_the_standard_library")
+    assert eager["code"] == 0 and heavy == [], eager
+
+
+# ---------------------------------------------------------------------- reference settings
+def test_reference_module_imports_only_from_below():
+    """_reference is domain code: it builds on the controllers, filters and the drive, never
+    on the edges (plots, cli) or the analyses."""
+    tree = ast.parse(REFERENCE_PATH.read_text())
+    allowed = {"_controllers", "_servo", "_blocks", "_drive", "_filters", "_statespace"}
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and node.level > 0:
+            assert (node.module or "").split(".")[0] in allowed, node.module
+        elif isinstance(node, ast.ImportFrom | ast.Import):
+            mods = [node.module] if isinstance(node, ast.ImportFrom) else [
+                a.name for a in node.names]
+            assert not any(m.startswith("fdjax") for m in mods), mods
+
+
+def test_reference_servo_is_the_default_servo():
+    servo = reference_servo()
+    assert servo.period == fdjax.Servo().period == 1.25e-4
+    assert servo.delay_samples == fdjax.Servo().delay_samples == 2
+    assert float(servo.k_motor) == float(fdjax.Servo().k_motor) == 1.2
+    assert servo.tau == 2.5e-4
+
+
+def test_reference_mcm_targets_modes_3_and_5():
+    """At its centre the peak term is (K/2ξ) e^{i(π/2 − φ)} (Eq. (3)), the notch factor at its
+    centre is ζ_n/ζ_d (Eq. (4)): closed forms, to the round-off of one second-order section."""
+    mcm = reference_mcm()
+    K, xi, phi = 0.5, 0.3, np.radians(-60.0)
+    np.testing.assert_allclose(np.asarray(mcm.peak.omega) / (2 * np.pi), [131.0], rtol=4 * EPS)
+    np.testing.assert_allclose(np.asarray(mcm.notch.omega) / (2 * np.pi), [1508.0],
+                               rtol=4 * EPS)
+    peak = complex(np.asarray(mcm.peak.frf([131.0]))[0])
+    np.testing.assert_allclose(peak, 1 + K / (2 * xi) * np.exp(1j * (np.pi / 2 - phi)),
+                               rtol=1e-13)
+    notch = complex(np.asarray(mcm.notch.frf([1508.0]))[0])
+    np.testing.assert_allclose(notch, 0.05 / 0.5, rtol=1e-13)
+
+
+def test_reference_pid_is_three_times_the_default():
+    base, pid = fdjax.PIDLoop(), reference_pid(k_ffv=2.0, k_ffa=0.5)
+    for name in ("kp", "ki", "kd"):
+        np.testing.assert_allclose(float(getattr(pid, name)), 3 * float(getattr(base, name)),
+                                   rtol=4 * EPS)
+    np.testing.assert_allclose(float(pid.wd), float(base.wd), rtol=4 * EPS)
+    assert float(pid.k_ffv) == 2.0 and float(pid.k_ffa) == 0.5
+    assert float(reference_pid().k_ffv) == 0.0 == float(reference_pid().k_ffa)
+
+
+@pytest.mark.parametrize("position_m", [0.1, 0.4, 0.7])
+def test_rigid_feedforward_is_the_rigid_body_mode_of_the_fe_model(position_m):
+    """k_ffa = rᵀMr/(k_m i_sc), k_ffv = rᵀCr/(k_m i_sc) for the rigid-body mode r of the FE
+    model (every rotation 1, the carriage at i_sc, the axial DOFs still).  Both sides are sums of
+    the same N² products: they agree to N²·ε of the sum of the products' magnitudes."""
+    drive = fdjax.reference_drive()
+    servo = fdjax.Servo(k_motor=1.5)
+    k_ffv, k_ffa = (float(x) for x in rigid_feedforward(drive, servo))
+    fe = fdjax.fe_matrices(drive, position_m)
+    n = fdjax.DEFAULT_ELEMENTS
+    M, C = np.asarray(fe.mass), np.asarray(fe.damping)
+    N = M.shape[0]
+    r = np.zeros(N)
+    r[: n + 2] = 1.0  # motor and every screw rotation node
+    r[2 * n + 3] = isc = float(drive.screw.ratio)  # the carriage follows at i_sc
+    scale = 1.5 * isc
+    for got, X in ((k_ffa, M), (k_ffv, C)):
+        bound = N**2 * EPS * (np.abs(r) @ np.abs(X) @ np.abs(r)) / scale
+        assert abs(got - r @ X @ r / scale) <= bound
+
+
+def test_rigid_feedforward_gradient_and_default_servo():
+    """∂k_ffa/∂m = i_sc/k_m (J_eq = … + m i_sc²) and ∂k_ffa/∂k_m = −k_ffa/k_m, by jax.grad;
+    without a servo, the reference servo's k_m; the DoubleLoop default k_ffa is the same
+    rigid-body feed-forward (its J_eq rounded to 5 significant digits: ≤ 4e-5 relative)."""
+    drive = fdjax.reference_drive()
+    servo = reference_servo()
+    isc, km = float(drive.screw.ratio), float(servo.k_motor)
+    g_mass = jax.grad(lambda m: rigid_feedforward(
+        eqx.tree_at(lambda d: d.carriage.mass, drive, m), servo)[1])(drive.carriage.mass)
+    np.testing.assert_allclose(float(g_mass), isc / km, rtol=16 * EPS)
+    k_ffa = float(rigid_feedforward(drive)[1])
+    g_km = jax.grad(lambda k: rigid_feedforward(drive, fdjax.Servo(k_motor=k))[1])(servo.k_motor)
+    np.testing.assert_allclose(float(g_km), -k_ffa / km, rtol=16 * EPS)
+    np.testing.assert_allclose(float(fdjax.DoubleLoop().k_ffa), k_ffa, rtol=1e-4)
+
+
+def test_rigid_feedforward_errors():
+    with pytest.raises(TypeError, match=r"`rigid_feedforward\(drive=\.\.\.\)` must be an "
+                                        r"fdjax.BallScrewDrive, got Servo"):
+        rigid_feedforward(fdjax.Servo())
+    with pytest.raises(TypeError, match=r"`rigid_feedforward\(servo=\.\.\.\)` must be an "
+                                        r"fdjax.Servo, got float"):
+        rigid_feedforward(fdjax.reference_drive(), 1.2)

@@ -317,7 +317,8 @@ def test_failures_carry_their_message_under_jit_and_vmap(drive):
             lambda p: fdjax.simulate(fdjax.DoubleLoop(), drive, far, position_m=p, n_modes=6,
                                      moving=True).x2))(jnp.array([0.3, 0.68])))
     # a start position outside the travel, under jit
-    with pytest.raises(Exception, match=r"`simulate\(position_m=\.\.\.\)` must be inside the travel"):
+    with pytest.raises(Exception,
+                       match=r"`simulate\(position_m=\.\.\.\)` must be inside the travel"):
         jax.block_until_ready(jax.jit(lambda p: sim(fdjax.DoubleLoop(), p).x2)(0.9))
     # check_stability with throw under jit
     with pytest.raises(Exception, match="the closed loop is unstable"):

@@ -51,6 +51,9 @@ def test_rigid_body_asymptote(drive):
          + J_screw + float(c.mass) * isc**2)
     cd = (float(r.motor_damping) + float(r.drive_end_damping) + float(r.free_end_damping)
           + float(c.axial_damping) * isc**2)
+    # the drive's own rigid-body summaries (used by the feed-forward defaults) are these sums
+    np.testing.assert_allclose(float(drive.reflected_inertia()), J, rtol=1e-14)
+    np.testing.assert_allclose(float(drive.reflected_damping()), cd, rtol=1e-14)
     f = np.array([0.5, 1.0])
     w = 2 * np.pi * f
     rigid = isc / (-(w**2) * J + 1j * w * cd)

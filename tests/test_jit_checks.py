@@ -58,7 +58,7 @@ def test_rod_receptance_and_wave_quantities_under_jit():
     h = jax.jit(lambda p: fdjax.rod_receptance(rod, jnp.array([100.0]), p))
     _raises(r"`rod_receptance\(points_m=\.\.\.\)` must be within", h, jnp.array([2.0]))
     # grad w.r.t. the length: the points must stay inside the traced rod
-    mag = lambda L: jnp.abs(fdjax.rod_receptance(  # noqa: E731
+    mag = lambda L: jnp.abs(fdjax.rod_receptance(
         fdjax.Rod.axial(diameter=0.03, length=L, loss_factor=0.01), jnp.array([700.0]), [0.3]
     )[0, 0, 0])
     assert np.isfinite(float(jax.grad(mag)(1.2)))
@@ -155,7 +155,7 @@ def test_drive_pointwise_methods_check_positions_under_jit(drive, method):
 
 def test_receptance_grad_and_vmap(drive):
     """The README's example keeps working under grad; out of the travel it raises."""
-    mag = lambda y: jnp.abs(drive.receptance(y, 2 * jnp.pi * 150.0)[1, 0])  # noqa: E731
+    mag = lambda y: jnp.abs(drive.receptance(y, 2 * jnp.pi * 150.0)[1, 0])
     g = jax.grad(mag)(0.4)
     h = 1e-6
     np.testing.assert_allclose(float(g), (float(mag(0.4 + h)) - float(mag(0.4 - h))) / (2 * h),

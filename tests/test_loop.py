@@ -500,13 +500,16 @@ def test_default_acceleration_feedforward_is_the_rigid_body_inertia(drive):
         (lambda: DoubleLoop(kv=0.0),
          r"`DoubleLoop\(kv=\.\.\.\)` must be finite and positive, got 0"),
         (lambda: fdjax.Servo(k_motor=np.nan), r"`Servo\(k_motor=\.\.\.\)` must be finite and pos"),
-        (lambda: fdjax.Servo(delay_samples=0), r"`Servo\(delay_samples=\.\.\.\)` must be an int"),
+        (lambda: fdjax.Servo(delay_samples=0),
+         r"`Servo\(delay_samples=\.\.\.\)` must be an integer"),
         (lambda: fdjax.Servo(period=1.25e-1 * 10), r"`Servo\(period=\.\.\.\)` must be a number"),
-        (lambda: fdjax.Continuous(pade_order=0), r"`Continuous\(pade_order=\.\.\.\)` must be in"),
+        (lambda: fdjax.Continuous(pade_order=0),
+         r"`Continuous\(pade_order=\.\.\.\)` must be an integer"),
         (lambda: DoubleLoop(k_ffa=np.inf), r"`DoubleLoop\(k_ffa=\.\.\.\)` must be finite"),
-        (lambda: DoubleLoop(ki=[1.0, 2.0]), r"`DoubleLoop\(ki=\.\.\.\)` must be a scalar"),
+        (lambda: DoubleLoop(ki=[1.0, 2.0]), r"`DoubleLoop\(ki=\.\.\.\)` must be a real scalar"),
         (lambda: PIDLoop(wd=-5.0), r"`PIDLoop\(wd=\.\.\.\)` must be finite and positive, got -5"),
-        (lambda: fdjax.pade(250e-6, 0), r"`pade\(order=\.\.\.\)` must be in \[1, 16\], got 0"),
+        (lambda: fdjax.pade(250e-6, 0),
+         r"`pade\(order=\.\.\.\)` must be an integer between 1 and 16, got 0"),
         (lambda: fdjax.pade(-1e-4, 3), r"`pade\(tau=\.\.\.\)` must be finite and positive"),
     ],
 )
@@ -521,7 +524,7 @@ def test_bad_analysis_inputs(drive, frf):
                                          r"\(with position_m\), a StateSpace, or an FRF array of "
                                          r"shape \(\.\.\., n_freq, 3, 2\) with n_freq = 2000"):
         fdjax.loop_margins(loop, frf[:, :10], FREQ, **FRF_KW)
-    with pytest.raises(ValueError, match=r"`Continuous\(pade_order=\.\.\.\)` must be an int"):
+    with pytest.raises(ValueError, match=r"`Continuous\(pade_order=\.\.\.\)` must be an integer"):
         fdjax.Continuous(pade_order=2.0)
     with pytest.raises(ValueError, match=r"`loop_margins\(freq_hz=\.\.\.\)` must be strictly"):
         fdjax.loop_margins(loop, frf, FREQ[::-1], **FRF_KW)
@@ -529,7 +532,8 @@ def test_bad_analysis_inputs(drive, frf):
         fdjax.open_loop(loop, frf.at[0, 5, 1, 0].set(jnp.nan), FREQ, **FRF_KW)
     with pytest.raises(ValueError, match=r"`open_loop\(screw_ratio=\.\.\.\)` is required"):
         fdjax.open_loop(loop, frf, FREQ, method=EXACT)
-    with pytest.raises(ValueError, match=r"`open_loop\(method=\.\.\.\)`: the sampled loop needs the plant in state"):
+    with pytest.raises(ValueError,
+                       match=r"`open_loop\(method=\.\.\.\)`: the sampled loop needs the plant"):
         fdjax.open_loop(loop, frf, FREQ, screw_ratio=ISC)
     with pytest.raises(ValueError, match=r"`loop_margins\(freq_hz=\.\.\.\)` must be below the "
                                          r"servo's Nyquist frequency 4000 Hz"):

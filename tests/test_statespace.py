@@ -380,9 +380,11 @@ def test_bad_input():
         state_space(drive, 0.8)
     with pytest.raises(ValueError, match=r"`state_space\(position_m=\.\.\.\)` must be a scalar"):
         state_space(drive, [0.2, 0.3])
-    with pytest.raises(ValueError, match=r"`state_space\(n_elements=\.\.\.\)` must be an integer at least 1, got 0"):
+    with pytest.raises(ValueError, match=r"`state_space\(n_elements=\.\.\.\)` must be an integer "
+                                         r"at least 1, got 0"):
         state_space(drive, 0.3, n_elements=0)
-    with pytest.raises(ValueError, match=r"`fe_matrices\(n_elements=\.\.\.\)` must be an integer at least 1, got 2.5"):
+    with pytest.raises(ValueError, match=r"`fe_matrices\(n_elements=\.\.\.\)` must be an integer "
+                                         r"at least 1, got 2\.5"):
         fe_matrices(drive, 0.3, n_elements=2.5)
     with pytest.raises(ValueError, match=r"`state_space\(n_modes=\.\.\.\)` must be in \[1, 29\]"):
         state_space(drive, 0.3, n_modes=30)

@@ -455,3 +455,74 @@ def test_errors_under_jit():
     assert float(position(jnp.array([0.0, 1.0, 2.0]))) == pytest.approx(0.5**3 / 6, rel=1e-14)
     with pytest.raises(Exception, match=r"Trajectory\(t_knots=\.\.\.\)` must be finite, non-decr"):
         jax.block_until_ready(position(jnp.array([0.0, 1.0, 0.5])))
+
+
+def _random_trajectory(seed: int, k: int = 24) -> Trajectory:
+    """Random knots (with zero-length segments) and jerks: extremes inside segments, where the
+    velocity has one, two or no roots, and at knots."""
+    rng = np.random.default_rng(seed)
+    h = rng.uniform(0.0, 0.05, k) * (rng.uniform(size=k) > 0.15)
+    jerk = rng.normal(0.0, 300.0, k) * (rng.uniform(size=k) > 0.2)  # some j = 0 segments
+    return Trajectory(np.concatenate([[0.0], np.cumsum(h)]), jerk, rng.normal(0.2, 0.05))
+
+
+@pytest.mark.parametrize(
+    "traj",
+    [
+        reciprocating(),
+        reciprocating(stroke=-3e-3, cycles=2, dwell=0.01, start=0.3),
+        jerk_limited(0.3, *FULL[1:], start=0.1),
+        jerk_limited(-0.2, *A_NOT[1:]),
+        *[_random_trajectory(s) for s in range(4)],
+    ],
+)
+def test_position_range_is_exact(traj):
+    """(min r, max r) against a dense sampling of r(t) over [−0.01, T + 0.01].
+
+    No sample may lie outside the exact range (this catches a missed interior extremum), and
+    the sampled extremes fall short of it by at most what the nearest sample, within Δt/2 of
+    the extremum t*, can miss: |v(t*)| Δt/2 + max|a| (Δt/2)²/2, where v(t*) = 0 unless the
+    extremum is at a knot (or at rest before 0 / after T).
+    """
+    lo, hi = (float(x) for x in traj.position_range())
+    T = float(traj.duration)
+    t = np.linspace(-0.01, T + 0.01, 400_001)
+    r, v, a, _ = (np.asarray(x) for x in traj.evaluate(t))
+    dt = t[1] - t[0]
+    gap = np.max(np.abs(v)) * dt / 2 + np.max(np.abs(a)) * dt**2 / 8
+    rnd = 64 * EPS * max(abs(lo), abs(hi))  # round-off of the cubic and the knot recurrence
+    assert lo <= r.min() + rnd and hi >= r.max() - rnd
+    assert r.min() - lo <= gap + rnd and hi - r.max() <= gap + rnd
+
+
+def test_position_range_interior_extremum_closed_form():
+    """One segment from rest with jerk j over h, then a segment with a = a₁, v = v₁ and jerk
+    −j: the velocity v₁ + a₁τ − jτ²/2 vanishes at τ* = (a₁ + √(a₁² + 2jv₁))/j, where
+    r = r₁ + v₁τ* + a₁τ*²/2 − jτ*³/6 is the maximum (it overshoots the knots)."""
+    j, h = 100.0, 0.1
+    traj = Trajectory([0.0, h, 4 * h], [j, -j], 0.5)
+    a1, v1, r1 = j * h, j * h**2 / 2, 0.5 + j * h**3 / 6
+    tau = (a1 + np.sqrt(a1**2 + 2 * j * v1)) / j
+    assert tau < 3 * h
+    r_max = r1 + v1 * tau + a1 * tau**2 / 2 - j * tau**3 / 6
+    lo, hi = traj.position_range()
+    np.testing.assert_allclose(float(hi), r_max, rtol=4 * EPS)
+    assert float(lo) == 0.5
+    rk = np.asarray(traj.knot_states()[0])
+    assert float(hi) > rk.max() + 1e-3  # strictly inside a segment, above every knot
+
+
+def test_position_range_under_jit_grad_and_no_retrace():
+    traj = reciprocating()
+
+    @eqx.filter_jit
+    @eqx.debug.assert_max_traces(max_traces=1)
+    def extent(tr):
+        return tr.position_range()
+
+    for start in (0.0, 0.2, 0.4):
+        lo, hi = extent(Trajectory(traj.t_knots, traj.jerk, start))
+        np.testing.assert_allclose([float(lo), float(hi)], [start, start + 5e-3], atol=1e-15)
+    # d(max r)/d(jerk scale c): r scales with c, so d hi/dc = hi − r0 at c = 1
+    g = jax.grad(lambda c: Trajectory(traj.t_knots, c * traj.jerk, 0.1).position_range()[1])(1.0)
+    np.testing.assert_allclose(float(g), 5e-3, rtol=1e-9)

@@ -119,14 +119,10 @@ class FilterBlock(AbstractBlock):
     filter: AbstractFilter
 
     def continuous(self) -> LTI:
-        f = self.filter.state_space()
-        return _siso(f.A, f.B, f.C, f.D)
+        return self.filter.state_space()
 
     def discrete(self, period, filter_method: str = "fitted") -> LTI:
-        ss = self.filter.discretize(period, filter_method).state_space()
-        if isinstance(ss, tuple):  # (A, B, C, D) of the filter's DF2T recursion
-            return _siso(*ss, dt=jnp.asarray(period, jnp.float64))
-        return _siso(ss.A, ss.B, ss.C, ss.D, dt=jnp.asarray(period, jnp.float64))
+        return self.filter.discretize(period, filter_method).state_space()
 
     def transfer(self, s):
         return self.filter.transfer(s)
@@ -172,11 +168,7 @@ def delay_frf(tau, omega, pade_order: int | None):
 
 def pade_order(order, where: str) -> int:
     """Validate a static Padé order in [1, 16]."""
-    if isinstance(order, bool) or not isinstance(order, int | np.integer):
-        raise ValueError(f"`{where}` must be an int, got {order!r}")
-    if not 1 <= order <= 16:
-        raise ValueError(f"`{where}` must be in [1, 16], got {order}")
-    return int(order)
+    return _checks.static_int(order, where, 1, 16)
 
 
 def pade(tau: ArrayLike, order: int) -> LTI:

@@ -126,20 +126,11 @@ class AbstractController(eqx.Module):
 
 
 def _log_positive(value, where: str) -> Array:
-    return jnp.log(_checks.positive(_scalar(value, where), where))
-
-
-def _scalar(value, where: str) -> Array:
-    arr = jnp.asarray(value)
-    if arr.ndim != 0:
-        raise ValueError(f"`{where}` must be a scalar, got shape {arr.shape}")
-    if jnp.issubdtype(arr.dtype, jnp.complexfloating):
-        raise ValueError(f"`{where}` must be real, got dtype {arr.dtype}")
-    return arr.astype(jnp.float64)
+    return jnp.log(_checks.positive(_checks.real_scalar(value, where), where))
 
 
 def _finite(value, where: str) -> Array:
-    return _checks.finite(_scalar(value, where), where)
+    return _checks.finite(_checks.real_scalar(value, where), where)
 
 
 class DoubleLoop(AbstractController):

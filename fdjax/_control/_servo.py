@@ -54,9 +54,7 @@ class Servo(eqx.Module):
         p = self.period
         if isinstance(p, bool) or not isinstance(p, int | float) or not 0 < p < 1:
             raise ValueError(f"`Servo(period=...)` must be a number in (0, 1) s, got {p!r}")
-        d = self.delay_samples
-        if isinstance(d, bool) or not isinstance(d, int) or not 1 <= d <= 64:
-            raise ValueError(f"`Servo(delay_samples=...)` must be an int in [1, 64], got {d!r}")
+        _checks.static_int(self.delay_samples, "Servo(delay_samples=...)", 1, 64)
         if self.k_motor.ndim != 0:
             raise ValueError(
                 f"`Servo(k_motor=...)` must be a scalar, got shape {self.k_motor.shape}"

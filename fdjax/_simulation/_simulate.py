@@ -216,17 +216,9 @@ def simulate(
     if isinstance(plant, BallScrewDrive):
         if position_m is None:
             raise ValueError(f"`{fn}(position_m=...)` is required when the plant is a drive")
-        pos0 = jnp.asarray(position_m, jnp.float64)
-        if pos0.ndim != 0:
-            raise ValueError(
-                f"`{fn}(position_m=...)` must be a scalar (jax.vmap for a batch), got shape "
-                f"{pos0.shape}"
-            )
+        pos0 = _checks.real_scalar(position_m, f"{fn}(position_m=...)")
+        pos0 = plant._check_travel(pos0, fn)
         lo, hi = plant.travel_m
-        pos0 = _checks.check(
-            pos0, lambda p: (p >= lo) & (p <= hi), f"{fn}(position_m=...)",
-            f"inside the travel [{lo:.6g}, {hi:.6g}] m",
-        )
         if n_modes is None:
             n_modes = count_modes(plant, n_elements=n_elements)
         travel = (float(lo), float(hi))
