@@ -1,17 +1,21 @@
 """Benchmark: closed-loop time simulation of the reference drive, fdjax vs python-control.
 
 The LTI closed loop of the reference drive (DoubleLoop, default gains, an MCM with a 120 Hz
-peak and a 1 kHz notch, delay τ = 250 µs) on 0.5 s of the reciprocating motion
+peak and a 1 kHz notch) around a 20 kHz servo, ``fdjax.Servo(period=5e-5, delay_samples=5)``
+(delay τ = d·T = 250 µs, as the reference servo's), on 0.5 s of the reciprocating motion
 (``reciprocating(stroke=5e-3, v_max=0.1, a_max=2.0, j_max=200.0, cycles=2)``), outputs at
 20 kHz (10,001 samples).  Three cases, each against python-control in the same process:
 
 1. ``one_run``: one simulation at Y = 0.4 m.  Baseline: ``control.forced_response`` of
-   ``control.ss(A, B, C, D)`` of the continuous Padé loop of ``fdjax.closed_loop`` (system
+   ``control.ss(A, B, C, D)`` of the continuous Padé loop of
+   ``fdjax.closed_loop(..., method=fdjax.Continuous())`` (system
    built once, outside the timing; input W = (r, ṙ, r̈, 0) sampled on t).  fdjax: a jitted
    function of (loop, plant) → outputs that includes sampling the reference, building the
-   loop and discretising it: ``SampledData`` (exact sampled-data loop, ``lax.scan``) and
+   loop and discretising it: ``SampledData()`` (exact sampled-data loop, lifted recursion) and
    ``PadeODE`` (the same continuous loop as the baseline, diffrax + ExponentialFOH).
-2. ``batch``: 64 positions over the travel 0.1–0.7 m.  fdjax: ``jax.vmap`` of ``simulate``
+2. ``batch``: 64 positions Y₀ over 0.1–0.695 m (Y₀ + r(t) inside the travel 0.1–0.7 m: the
+   stroke is 5 mm, and ``simulate`` reports a run leaving the travel as ``out_of_travel``).
+   fdjax: ``jax.vmap`` of ``simulate``
    on the drive (the twin is built at each position inside the timing, sampled-data path).
    Baseline: a loop of 64 ``forced_response`` calls on prebuilt systems (only the calls timed).
 3. ``grad``: ∂(RMS scale error)/∂(12 controller parameters: kp, kv, ki, k_ffv, k_ffa, the MCM
@@ -19,7 +23,8 @@ peak and a 1 kHz notch, delay τ = 250 µs) on 0.5 s of the reciprocating motion
    (6, 12) Jacobian.  fdjax: ``jax.vmap(jax.grad(...))`` over the six positions (plants
    prebuilt; loop building, discretisation and simulation inside).  Baseline: forward finite
    differences with python-control, 13 ``forced_response`` calls per position, the closed
-   loop rebuilt with ``fdjax.closed_loop`` for every perturbed parameter (that build is timed
+   loop rebuilt with ``fdjax.closed_loop`` (continuous) for every perturbed parameter (that
+   build is timed
    too and reported separately).  The compiled gradient programs' memory
    (``memory_analysis()``) is reported for the sampled path and for several diffrax adjoints.
 
@@ -50,7 +55,8 @@ from _timing import median_time  # benchmarks/ is on sys.path when run as a scri
 import fdjax
 
 DT, DURATION, DELAY_SAMPLES, POSITION = 5.0e-5, 0.5, 5, 0.4
-GRAD_POSITIONS = (0.1, 0.22, 0.34, 0.46, 0.58, 0.7)
+GRAD_POSITIONS = (0.1, 0.22, 0.34, 0.46, 0.58, 0.7)  # prebuilt twins: no travel check
+BATCH_SPAN_M = (0.1, 0.695)  # Y₀ + r(t) stays in the travel [0.1, 0.7] m: the stroke is 5 mm
 PARAMS = ("kp", "kv", "ki", "k_ffv", "k_ffa", "peak_K", "peak_omega", "peak_xi", "peak_phi",
           "notch_omega", "notch_zeta_n", "notch_zeta_d")
 TARGETS = {"one_run_sampled": 20.0, "one_run_pade_ode": 0.5, "batch_sampled": 30.0,
@@ -89,7 +95,9 @@ def build_loop(p):
                             mcm=mcm)
 
 
-SAMPLED = fdjax.SampledData(DT, delay_samples=DELAY_SAMPLES)
+SERVO = fdjax.Servo(period=DT, delay_samples=DELAY_SAMPLES)  # 20 kHz, τ = 5·T = 250 µs
+SAMPLED = fdjax.SampledData()
+CONTINUOUS = fdjax.Continuous()  # Padé delay of fdjax.DEFAULT_PADE_ORDER, as PadeODE's
 
 
 def outputs(sim):
@@ -103,7 +111,7 @@ def reference_inputs(t):
 
 
 def control_system(loop, plant):
-    cl = fdjax.closed_loop(loop, plant)
+    cl = fdjax.closed_loop(loop, plant, servo=SERVO, method=CONTINUOUS)
     return control.ss(*(np.asarray(m) for m in (cl.A, cl.B, cl.C, cl.D)))
 
 
@@ -159,39 +167,42 @@ def fd_gradients(params, plants, t, U, timing=None, central=False):
 # ----------------------------------------------------------------------------- fdjax
 @eqx.filter_jit
 def run_sampled(loop, plant):
-    sim = fdjax.simulate(loop, plant, REF, SAMPLED, duration=DURATION, throw=False)
+    sim = fdjax.simulate(loop, plant, REF, SAMPLED, servo=SERVO, duration=DURATION,
+                         throw=False)
     return outputs(sim), sim.result._value
 
 
 def pade_method(adjoint=None):
-    return fdjax.PadeODE(DT, adjoint=adjoint)
+    return fdjax.PadeODE(dt=DT, adjoint=adjoint)
 
 
 @eqx.filter_jit
 def run_pade(loop, plant):
-    sim = fdjax.simulate(loop, plant, REF, pade_method(), duration=DURATION, throw=False)
+    sim = fdjax.simulate(loop, plant, REF, pade_method(), servo=SERVO, duration=DURATION,
+                         throw=False)
     return outputs(sim), sim.result._value
 
 
 @eqx.filter_jit
 def run_batch(loop, positions):
     def one(p):
-        sim = fdjax.simulate(loop, DRIVE, REF, SAMPLED, duration=DURATION, position_m=p,
-                             n_modes=N_MODES, throw=False)
+        sim = fdjax.simulate(loop, DRIVE, REF, SAMPLED, servo=SERVO, duration=DURATION,
+                             position_m=p, n_modes=N_MODES, throw=False)
         return outputs(sim), sim.result._value
 
     return jax.vmap(one)(positions)
 
 
 def rms_sampled(p, plant):
-    sim = fdjax.simulate(build_loop(p), plant, REF, SAMPLED, duration=DURATION, throw=False)
+    sim = fdjax.simulate(build_loop(p), plant, REF, SAMPLED, servo=SERVO, duration=DURATION,
+                         throw=False)
     return sim.rms_error()
 
 
 def make_rms_pade(adjoint):
     def rms_pade(p, plant):
-        sim = fdjax.simulate(build_loop(p), plant, REF, pade_method(adjoint), duration=DURATION,
-                             throw=False)
+        sim = fdjax.simulate(build_loop(p), plant, REF, pade_method(adjoint), servo=SERVO,
+                             duration=DURATION, throw=False)
         return sim.rms_error()
 
     return rms_pade
@@ -275,7 +286,7 @@ def case_one_run(args, loop, plant, t, U):
 
 def case_batch(args, loop, t, U):
     load0 = loadavg()
-    positions = np.linspace(0.1, 0.7, args.positions)
+    positions = np.linspace(*BATCH_SPAN_M, args.positions)
     systems = [control_system(loop, fdjax.state_space(DRIVE, p)) for p in positions]
     pos = jnp.asarray(positions)
     Y, res = run_batch(loop, pos)
@@ -285,18 +296,19 @@ def case_batch(args, loop, t, U):
     vmap_err = float(np.max(np.abs(np.asarray(Y[-1]) - np.asarray(y_one))))
     yc_last = control_run(systems[-1], t, U)
     t_f, ts_f = median_time(lambda: run_batch(loop, pos), args.repeats)
-    # where the batched run spends its time (private helpers of fdjax._simulate, diagnostic)
-    from fdjax._simulate import _growth_rate, _lifted_outputs, _sampled_impl
+    # where the batched run spends its time (the sampled loop model's closed loop, and private
+    # helpers of fdjax._simulation._lifted: diagnostic)
+    from fdjax._simulation._lifted import growth_rate, lifted_outputs
 
     ss = jax.jit(jax.vmap(lambda p: fdjax.state_space(DRIVE, p, n_modes=N_MODES)))
     plants = ss(pos)
-    sl = eqx.filter_jit(jax.vmap(lambda pl: _sampled_impl(loop, pl, DT, DELAY_SAMPLES, "fitted")))
+    sl = eqx.filter_jit(jax.vmap(lambda pl: SAMPLED.closed_loop(loop, pl, SERVO)))
     SL = sl(plants)
     Wj = jnp.asarray(U.T)
-    scan = jax.jit(jax.vmap(lambda A, B, C, D: _lifted_outputs(A, B, C, D, Wj)))
-    growth = jax.jit(jax.vmap(lambda A: _growth_rate(A, DT)))
+    scan = jax.jit(jax.vmap(lambda A, B, C, D: lifted_outputs(A, B, C, D, Wj)))
+    growth = jax.jit(jax.vmap(lambda A: growth_rate(A, DT)))
     sim_pre = eqx.filter_jit(jax.vmap(lambda pl: outputs(fdjax.simulate(
-        loop, pl, REF, SAMPLED, duration=DURATION, throw=False))))
+        loop, pl, REF, SAMPLED, servo=SERVO, duration=DURATION, throw=False))))
     profile = {
         "state_space_s": median_time(lambda: ss(pos), args.repeats)[0],
         "sampled_closed_loop_s": median_time(lambda: sl(plants), args.repeats)[0],
@@ -305,7 +317,7 @@ def case_batch(args, loop, t, U):
                                         args.repeats)[0],
         "simulate_prebuilt_plants_s": median_time(lambda: sim_pre(plants), args.repeats)[0],
         "single_lifted_outputs_s": median_time(
-            lambda: jax.jit(_lifted_outputs)(SL.A[0], SL.B[0], SL.C[0], SL.D[0], Wj),
+            lambda: jax.jit(lifted_outputs)(SL.A[0], SL.B[0], SL.C[0], SL.D[0], Wj),
             args.repeats)[0],
         "states_sampled": int(SL.A.shape[-1]),
     }
@@ -317,7 +329,7 @@ def case_batch(args, loop, t, U):
         "sampled_s": t_f, "sampled_times": ts_f, "speedup_sampled": t_c / t_f,
         "profile_s": profile,
         "max_abs_diff_vmap_vs_single_run": vmap_err,
-        "max_abs_diff_x2_sampled_vs_control_at_0.7m_m":
+        f"max_abs_diff_x2_sampled_vs_control_at_{positions[-1]:.4g}m_m":
             float(np.max(np.abs(np.asarray(Y[-1, 1]) - yc_last[1]))),
         "loadavg_before": load0, "loadavg_after": loadavg(),
     }
@@ -541,6 +553,8 @@ def main():
         "repeats": {"fdjax": args.repeats, "baseline": args.baseline_repeats},
         "statistic": "median",
         "setup": {"duration_s": DURATION, "dt_s": DT, "delay_samples": DELAY_SAMPLES,
+                  "servo": {"period_s": SERVO.period, "delay_samples": SERVO.delay_samples,
+                            "tau_s": SERVO.tau, "k_motor": float(SERVO.k_motor)},
                   "n_modes": int(N_MODES), "params": default_params(),
                   "reference": "reciprocating(stroke=5e-3, v_max=0.1, a_max=2.0, j_max=200.0, "
                                "cycles=2)"},

@@ -41,7 +41,7 @@ def _np_segment(kz, phase):
 
 
 def _np_line(rod, w, l, supports):
-    """NumPy twin of fdjax._rods.line_stiffness for nodes (0, l, L)."""
+    """NumPy twin of fdjax._drive._rods.line_stiffness for nodes (0, l, L)."""
     Z, mu, eta, beta, L = rod
     zs = Z * (1 + 1j * (eta + w * beta))
     kz, k = w * np.sqrt(mu * zs), w * np.sqrt(mu / zs)

@@ -21,16 +21,6 @@ from ._analysis import (
     open_loop as open_loop,
     stability_margins as stability_margins,
 )
-from ._calibrate import (
-    TABLE_1 as TABLE_1,
-    TABLE_1_POSITION_M as TABLE_1_POSITION_M,
-    DriveModes as DriveModes,
-    ModalData as ModalData,
-    ModelUpdate as ModelUpdate,
-    drive_modes as drive_modes,
-    track_drive_modes as track_drive_modes,
-    update_model as update_model,
-)
 from ._control import (
     CLOSED_LOOP_INPUTS as CLOSED_LOOP_INPUTS,
     CLOSED_LOOP_OUTPUTS as CLOSED_LOOP_OUTPUTS,
@@ -54,10 +44,34 @@ from ._coupling import (
     joint_receptance as joint_receptance,
 )
 from ._drive import (
+    DEFAULT_BAND_HZ as DEFAULT_BAND_HZ,
+    DEFAULT_ELEMENTS as DEFAULT_ELEMENTS,
     INPUTS as INPUTS,
     OUTPUTS as OUTPUTS,
+    TABLE_1 as TABLE_1,
+    TABLE_1_POSITION_M as TABLE_1_POSITION_M,
+    VELOCITY_OUTPUTS as VELOCITY_OUTPUTS,
+    Axial as Axial,
     BallScrewDrive as BallScrewDrive,
+    Carriage as Carriage,
+    DriveModes as DriveModes,
+    FEMatrices as FEMatrices,
+    ModalData as ModalData,
+    ModelUpdate as ModelUpdate,
+    NutJoint as NutJoint,
+    Rod as Rod,
+    Rotary as Rotary,
+    Screw as Screw,
+    StateSpace as StateSpace,
+    Support as Support,
+    count_modes as count_modes,
+    drive_modes as drive_modes,
+    fe_matrices as fe_matrices,
     reference_drive as reference_drive,
+    rod_receptance as rod_receptance,
+    state_space as state_space,
+    track_drive_modes as track_drive_modes,
+    update_model as update_model,
 )
 from ._filters import (
     MCM as MCM,
@@ -79,7 +93,6 @@ from ._modal import (
     track_modes as track_modes,
 )
 from ._results import RESULTS as RESULTS
-from ._rods import Rod as Rod, Support as Support, rod_receptance as rod_receptance
 from ._simulation import (
     SIMULATION_OUTPUTS as SIMULATION_OUTPUTS,
     AbstractLoopModel as AbstractLoopModel,
@@ -89,23 +102,6 @@ from ._simulation import (
     SampledData as SampledData,
     Simulation as Simulation,
     simulate as simulate,
-)
-from ._statespace import (
-    DEFAULT_BAND_HZ as DEFAULT_BAND_HZ,
-    DEFAULT_ELEMENTS as DEFAULT_ELEMENTS,
-    VELOCITY_OUTPUTS as VELOCITY_OUTPUTS,
-    FEMatrices as FEMatrices,
-    StateSpace as StateSpace,
-    count_modes as count_modes,
-    fe_matrices as fe_matrices,
-    state_space as state_space,
-)
-from ._substructures import (
-    Axial as Axial,
-    Carriage as Carriage,
-    NutJoint as NutJoint,
-    Rotary as Rotary,
-    Screw as Screw,
 )
 from ._trajectory import (
     Trajectory as Trajectory,

@@ -36,11 +36,11 @@ from . import _checks
 from ._control._controllers import AbstractController
 from ._control._margins import Margins, grid_margins, model_margins
 from ._control._servo import Servo
-from ._drive import BallScrewDrive
+from ._drive._model import BallScrewDrive
+from ._drive._twin import StateSpace, count_modes, state_space
 from ._lti import LTI
 from ._results import RESULTS
 from ._simulation._methods import AbstractLoopModel, SampledData
-from ._statespace import StateSpace, count_modes, state_space
 from ._sweep import map_positions
 
 __all__ = [
@@ -165,7 +165,7 @@ def _twin_modes(drive, n_modes, n_elements, fn):
 def _plant(plant, position_m, fn: str, *, n_modes=None, n_elements=None, freq_hz=None,
            screw_ratio=None):
     """Normalise the plant to ("model", StateSpace | (drive, positions)) or ("frf", H)."""
-    from ._statespace import DEFAULT_ELEMENTS
+    from ._drive._twin import DEFAULT_ELEMENTS
 
     n_el = DEFAULT_ELEMENTS if n_elements is None else n_elements
     if isinstance(plant, BallScrewDrive):
@@ -203,6 +203,22 @@ def _plant(plant, position_m, fn: str, *, n_modes=None, n_elements=None, freq_hz
     pos = jnp.full(H.shape[:-3], jnp.nan) if position_m is None else jnp.broadcast_to(
         jnp.asarray(position_m, jnp.float64), H.shape[:-3])
     return "frf", (H, sr, pos), H.ndim == 3
+
+
+def _entry(fn, controller, plant, servo, method, position_m, n_modes, n_elements, *,
+           freq_hz=None, min_points=1, screw_ratio=None):
+    """The checks every entry point makes: (controller, servo, method, kind, plant, scalar,
+    frequency grid or None)."""
+    controller = _check_controller(controller, fn)
+    servo, method = _check_servo(servo, fn), _check_method(method, fn)
+    f = None if freq_hz is None else _grid(freq_hz, fn, min_points)
+    kind, p, scalar = _plant(plant, position_m, fn, n_modes=n_modes, n_elements=n_elements,
+                             freq_hz=f, screw_ratio=screw_ratio)
+    if f is None and kind == "frf":
+        raise TypeError(f"`{fn}(plant=...)` must be a drive or a StateSpace, not an FRF array")
+    if f is not None:
+        f = _below_nyquist(f, kind, method, servo, fn)
+    return controller, servo, method, kind, p, scalar, f
 
 
 def _map_twins(kind, p, body, has_eig=False):
@@ -285,13 +301,10 @@ def open_loop(
         n_modes, n_elements: the twin's kept modes (default: the 4 kHz band's count) and screw
             elements, for a drive plant.
     """
-    fn = "open_loop"
-    controller = _check_controller(controller, fn)
-    servo, method = _check_servo(servo, fn), _check_method(method, fn)
-    f = _grid(freq_hz, fn)
-    kind, p, scalar = _plant(plant, position_m, fn, n_modes=n_modes, n_elements=n_elements,
-                             freq_hz=f, screw_ratio=screw_ratio)
-    f = _below_nyquist(f, kind, method, servo, fn)
+    controller, servo, method, kind, p, scalar, f = _entry(
+        "open_loop", controller, plant, servo, method, position_m, n_modes, n_elements,
+        freq_hz=freq_hz, screw_ratio=screw_ratio,
+    )
     loops = _open_loop_jit(controller, kind, p, f, servo, method)
     return OpenLoop(freq_hz=f, **_squeeze(loops, scalar, kind))
 
@@ -377,13 +390,10 @@ def loop_margins(
 
     Args: as :func:`open_loop` (at least 3 frequencies).
     """
-    fn = "loop_margins"
-    controller = _check_controller(controller, fn)
-    servo, method = _check_servo(servo, fn), _check_method(method, fn)
-    f = _grid(freq_hz, fn, min_points=3)
-    kind, p, scalar = _plant(plant, position_m, fn, n_modes=n_modes, n_elements=n_elements,
-                             freq_hz=f, screw_ratio=screw_ratio)
-    f = _below_nyquist(f, kind, method, servo, fn)
+    controller, servo, method, kind, p, scalar, f = _entry(
+        "loop_margins", controller, plant, servo, method, position_m, n_modes, n_elements,
+        freq_hz=freq_hz, min_points=3, screw_ratio=screw_ratio,
+    )
     return _squeeze(_loop_margins_jit(controller, kind, p, f, servo, method), scalar, kind)
 
 
@@ -438,12 +448,9 @@ def closed_loop(
 
     Args: as :func:`open_loop` (no frequency grid; the plant is a drive or a StateSpace).
     """
-    fn = "closed_loop"
-    controller = _check_controller(controller, fn)
-    servo, method = _check_servo(servo, fn), _check_method(method, fn)
-    kind, p, scalar = _plant(plant, position_m, fn, n_modes=n_modes, n_elements=n_elements)
-    if kind == "frf":
-        raise TypeError(f"`{fn}(plant=...)` must be a drive or a StateSpace, not an FRF array")
+    controller, servo, method, kind, p, scalar, _ = _entry(
+        "closed_loop", controller, plant, servo, method, position_m, n_modes, n_elements
+    )
     return _squeeze(_closed_loop_jit(controller, kind, p, servo, method), scalar, kind)
 
 
@@ -478,12 +485,9 @@ def check_stability(
         throw: raise when unstable — eagerly a RuntimeError with ``.message``; under ``jit`` the
             result code's own message.  Off by default: an unstable loop is an answer.
     """
-    fn = "check_stability"
-    controller = _check_controller(controller, fn)
-    servo, method = _check_servo(servo, fn), _check_method(method, fn)
-    kind, p, scalar = _plant(plant, position_m, fn, n_modes=n_modes, n_elements=n_elements)
-    if kind == "frf":
-        raise TypeError(f"`{fn}(plant=...)` must be a drive or a StateSpace, not an FRF array")
+    controller, servo, method, kind, p, scalar, _ = _entry(
+        "check_stability", controller, plant, servo, method, position_m, n_modes, n_elements
+    )
     result = _squeeze(_stability_jit(controller, kind, p, servo, method), scalar, kind)
     if throw:
         failed = result.result != RESULTS.successful

@@ -15,7 +15,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.colors import LogNorm  # noqa: E402
 
-from ._drive import INPUTS, OUTPUTS  # noqa: E402
+from ._drive._model import INPUTS, OUTPUTS  # noqa: E402
 
 __all__ = [
     "plot_three_mass_frf",

@@ -8,7 +8,7 @@ import optimistix as optx
 import pytest
 
 import fdjax
-from fdjax._calibrate import ModalData, drive_modes, update_model
+from fdjax._drive import ModalData, drive_modes, update_model
 
 
 @pytest.fixture(scope="module")

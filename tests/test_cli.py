@@ -106,6 +106,8 @@ def test_modes_writes_table(tmp_path, capsys):
          "argument --n-modes: expected the number of modes, an integer ≥ 1; got '0'"),
         ([], "the following arguments are required: {reproduce,demo,figures,modes}"),
     ],
+    ids=["typo", "typo-figures", "unknown-command", "bad-option", "abbreviation", "bad-choice",
+         "positions-in-mm", "positions-in-m", "positions-too-few", "n-modes-zero", "no-command"],
 )
 def test_argument_errors(argv, message, capsys):
     with pytest.raises(SystemExit) as exc:

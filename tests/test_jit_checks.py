@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import fdjax
-from fdjax._calibrate import ModalData, drive_modes
+from fdjax._drive import ModalData, drive_modes
 
 W = 2 * np.pi * np.array([50.0, 150.0])
 FREQ = np.array([20.0, 150.0])

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import fdjax
-from fdjax import _calibrate, _drive, _statespace
+from fdjax._drive import _model, _modes, _twin, _updating
 
 POSITIONS = (0.1, 0.25, 0.4, 0.55, 0.7)
 
@@ -34,7 +34,7 @@ def _values(positions):
 
 
 def test_frf_compiles_once_over_positions(drive, monkeypatch):
-    _trace_once(monkeypatch, _drive, "_drive_entries_jit", _drive._drive_entries)
+    _trace_once(monkeypatch, _model, "_drive_entries_jit", _model._drive_entries)
     freq = np.geomspace(10.0, 2000.0, 16)
     for y in _values(POSITIONS):
         drive.frf(y, freq)
@@ -44,27 +44,27 @@ def test_frf_compiles_once_over_positions(drive, monkeypatch):
 
 
 def test_frf_direct_compiles_once_over_positions(drive, monkeypatch):
-    _trace_once(monkeypatch, _drive, "_drive_frf_direct_jit", _drive._drive_frf_direct)
+    _trace_once(monkeypatch, _model, "_drive_frf_direct_jit", _model._drive_frf_direct)
     freq = np.geomspace(10.0, 2000.0, 4)
     for y in _values(POSITIONS):
         drive.frf_direct(y, freq)
 
 
 def test_fe_matrices_compiles_once_over_positions(drive, monkeypatch):
-    _trace_once(monkeypatch, _statespace, "_assemble_jit", _statespace._assemble)
+    _trace_once(monkeypatch, _twin, "_assemble_jit", _twin._assemble)
     for y in _values(POSITIONS):
         fdjax.fe_matrices(drive, y)
 
 
 def test_state_space_compiles_once_over_positions(drive, monkeypatch):
-    _trace_once(monkeypatch, _statespace, "_realise_jit", _statespace._realise)
+    _trace_once(monkeypatch, _twin, "_realise_jit", _twin._realise)
     for y in _values(POSITIONS):
         fdjax.state_space(drive, y, n_modes=8)
 
 
 def test_drive_modes_compiles_once_over_positions(drive, monkeypatch):
-    _trace_once(monkeypatch, _calibrate, "_modes_jit", _calibrate._modes_at)
-    _trace_once(monkeypatch, _calibrate, "_modes_batch_jit", _calibrate._modes_batch)
+    _trace_once(monkeypatch, _modes, "_modes_jit", _modes._modes_at)
+    _trace_once(monkeypatch, _modes, "_modes_batch_jit", _modes._modes_batch)
     for y in _values(POSITIONS):
         fdjax.drive_modes(drive, y, n_modes=4)
     fdjax.drive_modes(drive, np.array([0.2, 0.3]), n_modes=4)
@@ -74,7 +74,7 @@ def test_drive_modes_compiles_once_over_positions(drive, monkeypatch):
 def test_update_model_compiles_once_for_new_data(drive, monkeypatch):
     """A second data set (target values, bounds, position, tolerances, visibility) of the same
     shapes runs the compiled solve again: the data go through optimistix's ``args``."""
-    _trace_once(monkeypatch, _calibrate, "_update_jit", _calibrate._update)
+    _trace_once(monkeypatch, _updating, "_update_jit", _updating._update)
     m = fdjax.drive_modes(drive, 0.2, n_modes=4)
     first = fdjax.update_model(
         drive, fdjax.ModalData(m.frequency_hz[:3], m.damping[:3], m.phase_deg[:3]),

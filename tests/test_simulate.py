@@ -413,7 +413,7 @@ def test_moving_table_sampled(drive):
     k = a.t.shape[0]
     t = np.arange(k) * DT
     r, r_mid = np.asarray(fast.evaluate(t)[0]), np.asarray(fast.evaluate(t + DT / 2)[0])
-    n_el = fdjax._statespace.DEFAULT_ELEMENTS
+    n_el = fdjax._drive._twin.DEFAULT_ELEMENTS
     plant = MovingPlant.at_rest(drive, jnp.asarray(y0), n_el, 8)
     at = eqx.filter_jit(lambda y: plant.at(y))
     plants = [(at(y0 + r[i]), at(y0 + r_mid[i])) for i in range(k)]

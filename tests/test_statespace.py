@@ -25,7 +25,7 @@ import scipy.linalg
 import scipy.signal
 
 from fdjax._drive import reference_drive
-from fdjax._statespace import (
+from fdjax._drive._twin import (
     DEFAULT_ELEMENTS,
     count_modes,
     fe_matrices,

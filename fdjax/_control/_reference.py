@@ -13,7 +13,7 @@ import math
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from .._drive import BallScrewDrive
+from .._drive._model import BallScrewDrive
 from .._filters import MCM, NotchFilter, PeakFilter
 from ._controllers import PIDLoop
 from ._servo import REFERENCE_DELAY_SAMPLES, REFERENCE_K_MOTOR, REFERENCE_PERIOD_S, Servo

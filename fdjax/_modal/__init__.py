@@ -84,6 +84,6 @@ from ._identify import (
     identify_modes_batched as identify_modes_batched,
 )
 from ._tracking import (
-    _track as _track,  # the permutations alone, for fdjax._calibrate's drive-mode tracking
+    _track as _track,  # the permutations alone, for fdjax._drive._modes' drive-mode tracking
     track_modes as track_modes,
 )

@@ -12,8 +12,8 @@ import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 from jaxtyping import Array, Float
 
-from .._drive import BallScrewDrive
-from .._statespace import StateSpace, _assemble, _generalised_eigh, _rigid_mode
+from .._drive._model import BallScrewDrive
+from .._drive._twin import StateSpace, _assemble, _generalised_eigh, _rigid_mode
 
 
 class MovingPlant(eqx.Module):

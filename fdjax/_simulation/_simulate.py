@@ -26,9 +26,9 @@ from jaxtyping import Array, ArrayLike, Float, Int
 from .. import _checks
 from .._control._controllers import AbstractController
 from .._control._servo import Servo
-from .._drive import BallScrewDrive
+from .._drive._model import BallScrewDrive
+from .._drive._twin import DEFAULT_ELEMENTS, StateSpace, count_modes, state_space
 from .._results import RESULTS
-from .._statespace import DEFAULT_ELEMENTS, StateSpace, count_modes, state_space
 from ._methods import AbstractLoopModel, SampledData
 from ._moving import MovingPlant
 

@@ -25,8 +25,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Complex, Float
 
-from . import _checks
-from ._linalg import recip
+from .. import _checks
+from .._linalg import recip
 
 __all__ = ["Rod", "Support", "rod_receptance"]
 

@@ -17,8 +17,8 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Complex, Float
 
-from . import _checks
-from ._linalg import recip
+from .. import _checks
+from .._linalg import recip
 from ._rods import Rod, Support, line_stiffness, spring_stiffness, tridiagonal_receptance
 
 __all__ = ["Screw", "Rotary", "Axial", "Carriage", "NutJoint"]

@@ -1,18 +1,6 @@
-r"""Modal characteristics of the drive model, and model updating against measured modal data.
+r"""Model updating: fit the drive's physical parameters to measured modal data.
 
-**Modes of the model.**  The time-domain twin's finite-element matrices give the first-order
-system ``ż = A z + B u`` with ``A = [[0, I], [−M⁻¹K, −M⁻¹C]]``.  Its eigenvalues
-``λ_r = −ζ_r ω_r ± iω_r √(1−ζ_r²)`` give natural frequency ``ω_r = |λ_r|`` and damping ratio
-``ζ_r = −Re λ_r / |λ_r|``; with right/left eigenvectors the residue of output ``o`` per input ``i``
-is ``R_r = (S v_r)_o (w_rᵀ B)_i`` and the mode's own term is the conjugate pair
-
-    h_r(ω) = R_r / (iω − λ_r) + R̄_r / (iω − λ̄_r).
-
-Its **resonant phase** is ``arg h_r(ω_r)`` (DESIGN.md §2, paper Table 1): for a term
-``A e^{iα} / (ω_r² − ω² + 2iζω_rω)`` this is ``α − 90°``.  Phases are wrapped to (−360°, 0].
-These are exact properties of the model (no curve fit), differentiable in every parameter.
-
-**Model updating.**  Given target modal data (e.g. the paper's Table 1 at Y_table = 115 mm),
+Given target modal data (e.g. the paper's Table 1 at Y_table = 115 mm),
 bounded physical parameters are adjusted by Levenberg–Marquardt (optimistix) on residuals
 normalised by the tolerances,
 
@@ -34,16 +22,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, Float
 
-from . import _checks
-from ._drive import INPUTS, OUTPUTS, BallScrewDrive
-from ._statespace import DEFAULT_ELEMENTS, _assemble, _check_inputs, _check_time_domain
+from .. import _checks
+from ._model import INPUTS, OUTPUTS, BallScrewDrive
+from ._modes import DriveModes, _channel, _modes_at, _wrap_deg
+from ._twin import DEFAULT_ELEMENTS, _check_inputs
 
-__all__ = [
-    "ModalData", "DriveModes", "ModelUpdate", "drive_modes", "track_drive_modes",
-    "update_model", "TABLE_1", "TABLE_1_POSITION_M",
-]
+__all__ = ["ModalData", "ModelUpdate", "update_model", "TABLE_1", "TABLE_1_POSITION_M"]
 
 
 def _vector_field(where: str, test):
@@ -87,168 +73,6 @@ TABLE_1 = ModalData(
 """The paper's Table 1: modes of h21 (x2/T1) identified at Y_table = 115 mm."""
 
 TABLE_1_POSITION_M = 0.115
-
-
-class DriveModes(eqx.Module):
-    """Modes of one FRF entry of the drive model, ascending in frequency.
-
-    Attributes:
-        frequency_hz: natural frequencies |λ_r|/2π (Hz).
-        damping: damping ratios −Re λ_r/|λ_r|.
-        phase_deg: resonant phase of the entry, arg h_r(ω_r) in (−360°, 0].
-        amplitude: |h_r(ω_r)|, the mode's peak contribution (units of the FRF entry).
-        prominence: |h_r(ω_r)| / |h(ω_r)|, the mode's share of the whole entry at its own
-            natural frequency: how visible (identifiable) it is in a measured FRF.
-        poles: λ_r (rad/s), upper half-plane.
-        shapes: residues of all three outputs (θ1, x2, x3) for the chosen input, (n, 3):
-            the mode shapes seen from that input, used to track modes over position.
-    """
-
-    frequency_hz: Float[Array, "*b n"]
-    damping: Float[Array, "*b n"]
-    phase_deg: Float[Array, "*b n"]
-    amplitude: Float[Array, "*b n"]
-    prominence: Float[Array, "*b n"]
-    poles: Array
-    shapes: Array
-
-
-def _wrap_deg(phi, upper: float = 0.0):
-    """Wrap degrees to (upper − 360°, upper]: (−360°, 0] for resonant phases, ``upper=180``
-    for phase errors in (−180°, 180]."""
-    return phi - 360.0 * jnp.ceil((phi - upper) / 360.0)
-
-
-def _channel(name, names, fn, arg):
-    if not isinstance(name, str) or name not in names:
-        raise ValueError(f"`{fn}({arg}=...)` must be one of {names}, got {name!r}")
-    return names.index(name)
-
-
-def _modes_from_fe(fe, out: int, inp: int, n_keep: int) -> DriveModes:
-    N = fe.mass.shape[0]
-    Minv = jnp.linalg.inv(fe.mass)
-    A = jnp.block([[jnp.zeros((N, N)), jnp.eye(N)], [-Minv @ fe.stiffness, -Minv @ fe.damping]])
-    B = jnp.concatenate([jnp.zeros((N,)), Minv @ fe.inputs[:, inp]])
-    C = jnp.concatenate([fe.outputs[out], jnp.zeros((N,))])
-    # Residues need left eigenvectors: rows of V⁻¹.  They are invariant to the scaling of
-    # each eigenvector, so the eigenvector-derivative gauge JAX asks us to accept is harmless.
-    lam, V = jax.lax.linalg.eig(A, compute_left_eigenvectors=False, enable_eigvec_derivs=True)
-    W = jnp.linalg.inv(V)
-    # the lowest oscillatory poles in the upper half-plane (rigid-body and overdamped poles
-    # are real and excluded)
-    oscillatory = jnp.imag(lam) > 1e-6 * jnp.max(jnp.abs(lam))
-    keep = jnp.argsort(jnp.where(oscillatory, jnp.abs(lam), jnp.inf))[:n_keep]
-    lam, V, W = lam[keep], V[:, keep], W[keep, :]
-    Cc, Bc = C.astype(jnp.complex128), B.astype(jnp.complex128)
-    wb = W @ Bc
-    R = (V.T @ Cc) * wb
-    # residues of every output (θ1, x2, x3) for this input: the mode's shape for tracking
-    shapes = (V[:N].T @ fe.outputs.T.astype(jnp.complex128)) * wb[:, None]
-    wr = jnp.abs(lam)
-    s = 1j * wr.astype(jnp.complex128)
-    term = R / (s - lam) + jnp.conj(R) / (s - jnp.conj(lam))
-    # the whole FRF entry at each natural frequency, to judge how prominent the mode is
-    D = (fe.stiffness.astype(jnp.complex128)[None]
-         - (wr**2)[:, None, None].astype(jnp.complex128) * fe.mass.astype(jnp.complex128)[None]
-         + s[:, None, None] * fe.damping.astype(jnp.complex128)[None])
-    q = jnp.linalg.solve(D, jnp.broadcast_to(fe.inputs[:, inp].astype(jnp.complex128),
-                                            (n_keep, N))[..., None])[..., 0]
-    total = q @ fe.outputs[out].astype(jnp.complex128)
-    idx = jnp.argsort(wr)
-    return DriveModes(
-        frequency_hz=(wr / (2 * jnp.pi))[idx],
-        damping=(-jnp.real(lam) / wr)[idx],
-        phase_deg=_wrap_deg(jnp.degrees(jnp.angle(term)))[idx],
-        amplitude=jnp.abs(term)[idx],
-        prominence=(jnp.abs(term) / jnp.abs(total))[idx],
-        poles=lam[idx],
-        shapes=shapes[idx],
-    )
-
-
-def drive_modes(
-    drive: BallScrewDrive,
-    position_m: Float[ArrayLike, ""],
-    *,
-    output: str = "x2",
-    input: str = "T1",
-    n_modes: int = 12,
-    n_elements: int = DEFAULT_ELEMENTS,
-) -> DriveModes:
-    """The lowest ``n_modes`` flexible modes of one FRF entry of the drive at a position.
-
-    Exact eigen-analysis of the finite-element twin (see the module docstring); the default
-    entry is h21 = x2/T1, the paper's Table 1 and Fig. 12.  Differentiable; a 1-D
-    ``position_m`` runs one compiled loop over the positions (returned with a leading axis).
-    """
-    fn = "drive_modes"
-    out = _channel(output, OUTPUTS, fn, "output")
-    inp = _channel(input, INPUTS, fn, "input")
-    n_el = _checks.static_int(n_elements, f"{fn}(n_elements=...)", 1)
-    # at most N − 1 oscillatory pole pairs for N = 2·n_elements + 5 DOFs (the rigid body
-    # gives two real poles)
-    n_keep = _checks.static_int(n_modes, f"{fn}(n_modes=...)", 1, 2 * n_el + 4)
-    pos = _checks.real_array(position_m, f"{fn}(position_m=...)")
-    if pos.ndim == 0:
-        drive, pos = _check_inputs(drive, pos, fn)
-        return _modes_jit(drive, pos, out, inp, n_keep, n_el)
-    if pos.ndim != 1:
-        raise ValueError(f"`{fn}(position_m=...)` must be a scalar or 1-D, got {pos.shape}")
-    drive = _check_time_domain(drive, fn)
-    pos = drive._check_positions(pos, fn)
-    return _modes_batch_jit(drive, pos, out, inp, n_keep, n_el)
-
-
-def _modes_at(drive, pos, out, inp, n_modes, n_elements):
-    return _modes_from_fe(_assemble(drive, pos, n_elements, True), out, inp, n_modes)
-
-
-def _modes_batch(drive, pos, out, inp, n_modes, n_elements):
-    # lax.map, not vmap: a batched non-symmetric eig on the CPU has been seen to dead-lock
-    # (XLA:CPU, jax 0.10); one eig per position inside a compiled loop is as fast here.
-    return jax.lax.map(lambda p: _modes_at(drive, p, out, inp, n_modes, n_elements), pos)
-
-
-# Positions reach these as arrays (a Python float would be static: one compile per value).
-_modes_jit = eqx.filter_jit(_modes_at)
-_modes_batch_jit = eqx.filter_jit(_modes_batch)
-
-
-def track_drive_modes(
-    modes: DriveModes, *, freq_tol: float = 0.05, mac_tol: float = 0.2
-) -> DriveModes:
-    """Re-order a position batch of :func:`drive_modes` so each index follows one mode.
-
-    Neighbouring positions are paired by minimising the frequency change (extrapolated) and
-    ``1 − MAC`` of the three-output mode shapes (see :func:`fdjax.track_modes`).
-    """
-    from ._modal import _track
-
-    if not isinstance(modes, DriveModes):
-        raise ValueError(
-            f"`track_drive_modes(modes=...)` must be a DriveModes, got {type(modes).__name__}"
-        )
-    freq_tol = _checks.positive(
-        _checks.real_scalar(freq_tol, "track_drive_modes(freq_tol=...)"),
-        "track_drive_modes(freq_tol=...)",
-    )
-    mac_tol = _checks.positive(
-        _checks.real_scalar(mac_tol, "track_drive_modes(mac_tol=...)"),
-        "track_drive_modes(mac_tol=...)",
-    )
-    if modes.frequency_hz.ndim != 2:
-        raise ValueError(
-            "`track_drive_modes(modes=...)` must be a batch over positions, got frequency_hz "
-            f"of shape {modes.frequency_hz.shape}"
-        )
-    perm = _track(modes.frequency_hz, modes.shapes, freq_tol, mac_tol, True)
-
-    def take(x):
-        idx = perm.reshape(perm.shape + (1,) * (x.ndim - 2))
-        return jnp.take_along_axis(x, idx, axis=1)
-
-    return jax.tree_util.tree_map(take, modes)
 
 
 class ModelUpdate(eqx.Module):

@@ -1,7 +1,7 @@
 r"""The time-domain twin: a finite-element model of the drive and its truncated modal realisation.
 
-The frequency-domain model (:mod:`fdjax._drive`) is exact but lives in ω.  A controller is
-simulated in time, so here the same drive at one table position becomes
+The frequency-domain model (:mod:`fdjax._drive._model`) is exact but lives in ω.  A controller
+is simulated in time, so here the same drive at one table position becomes
 
     M q̈ + C q̇ + K q = F u,        y = S q,        u = (T1, F3),  y = (θ1, x2, x3),
 
@@ -19,10 +19,10 @@ screw, the same for torsion (Z = GJ, μ = ρJ) and axial motion (Z = EA, μ = ρ
 the last the Kelvin–Voigt part of ``Z*(ω) = Z(1 + iωβ)`` (:class:`fdjax.Rod`).  The hysteretic
 loss factor η has no time-domain realisation and must be 0.
 
-**Lumped parts**, exactly as in the frequency model (:mod:`fdjax._substructures`): motor inertia
-and friction on θ1, the coupling (k_c, c_c) between θ1 and θ_0, drive-end and free-end inertias
-and dampers on θ_0 and θ_n, the thrust bearing (k, c, m) on u_0 and the free-end bearing on
-u_n, and the carriage: mass m and guideway damping c_x on x_c, pitch inertia J, stiffness k_ψ
+**Lumped parts**, exactly as in the frequency model (:mod:`fdjax._drive._substructures`): motor
+inertia and friction on θ1, the coupling (k_c, c_c) between θ1 and θ_0, drive-end and free-end
+inertias and dampers on θ_0 and θ_n, the thrust bearing (k, c, m) on u_0 and the free-end bearing
+on u_n, and the carriage: mass m and guideway damping c_x on x_c, pitch inertia J, stiffness k_ψ
 and damping c_ψ on ψ.
 
 **Nut.** The nut sits at ``l = Y_table + l0`` inside element ``k = ⌊l/h⌋`` at local coordinate
@@ -88,9 +88,9 @@ import jax.scipy.linalg as jsl
 import numpy as np
 from jaxtyping import Array, ArrayLike, Complex, Float
 
-from . import _checks
-from ._drive import INPUTS, OUTPUTS, BallScrewDrive
-from ._lti import transfer
+from .. import _checks
+from .._lti import transfer
+from ._model import INPUTS, OUTPUTS, BallScrewDrive
 
 __all__ = [
     "FEMatrices",
