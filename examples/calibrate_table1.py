@@ -1,4 +1,4 @@
-"""Model updating: the reference drive calibrated to the paper's Table 1 (issue 3).
+"""Model updating: the reference drive calibrated to the paper's Table 1.
 
 The paper's Table 1 lists the modes of h21 = x2/T1 at Y_table = 115 mm.  ``fdjax.reference_drive()``
 ships the calibrated parameters; this script checks them and reproduces the last stage of the

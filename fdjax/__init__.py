@@ -1,111 +1,270 @@
 """fdjax: differentiable design of ball-screw feed-drive controllers in JAX.
 
 Importing fdjax switches JAX to float64 (``jax_enable_x64``): receptances of a machine-tool
-axis are ~1e-9 m/N and float32 loses them. Set it yourself before creating arrays if you
-import JAX first.
+axis are ~1e-9 m/N and float32 loses them.  If JAX is not imported yet, fdjax sets
+``JAX_ENABLE_X64`` (unless you set it) so that JAX starts in float64; if it is, fdjax switches
+the flag.  Set it yourself before creating arrays if you import JAX first and create arrays
+before importing fdjax.
+
+The public names below are loaded on first use (the command line answers ``--help`` without
+importing JAX); each is defined in the private module named next to it.
 """
 
-import jax
+from __future__ import annotations
 
-jax.config.update("jax_enable_x64", True)
+import importlib
+import os
+import sys
+from typing import TYPE_CHECKING
 
 __version__ = "0.1.0"
 
-from ._analysis import (
-    LoopMargins as LoopMargins,
-    OpenLoop as OpenLoop,
-    Stability as Stability,
-    check_stability as check_stability,
-    closed_loop as closed_loop,
-    loop_margins as loop_margins,
-    open_loop as open_loop,
-    stability_margins as stability_margins,
-)
-from ._control import (
-    CLOSED_LOOP_INPUTS as CLOSED_LOOP_INPUTS,
-    CLOSED_LOOP_OUTPUTS as CLOSED_LOOP_OUTPUTS,
-    DEFAULT_PADE_ORDER as DEFAULT_PADE_ORDER,
-    LAW_SIGNALS as LAW_SIGNALS,
-    PI as PI,
-    PID as PID,
-    AbstractBlock as AbstractBlock,
-    AbstractController as AbstractController,
-    DoubleLoop as DoubleLoop,
-    FilterBlock as FilterBlock,
-    Law as Law,
-    Margins as Margins,
-    Path as Path,
-    PIDLoop as PIDLoop,
-    Servo as Servo,
-    pade as pade,
-)
-from ._coupling import (
-    couple as couple,
-    joint_receptance as joint_receptance,
-)
-from ._drive import (
-    DEFAULT_BAND_HZ as DEFAULT_BAND_HZ,
-    DEFAULT_ELEMENTS as DEFAULT_ELEMENTS,
-    INPUTS as INPUTS,
-    OUTPUTS as OUTPUTS,
-    TABLE_1 as TABLE_1,
-    TABLE_1_POSITION_M as TABLE_1_POSITION_M,
-    VELOCITY_OUTPUTS as VELOCITY_OUTPUTS,
-    Axial as Axial,
-    BallScrewDrive as BallScrewDrive,
-    Carriage as Carriage,
-    DriveModes as DriveModes,
-    FEMatrices as FEMatrices,
-    ModalData as ModalData,
-    ModelUpdate as ModelUpdate,
-    NutJoint as NutJoint,
-    Rod as Rod,
-    Rotary as Rotary,
-    Screw as Screw,
-    StateSpace as StateSpace,
-    Support as Support,
-    count_modes as count_modes,
-    drive_modes as drive_modes,
-    fe_matrices as fe_matrices,
-    reference_drive as reference_drive,
-    rod_receptance as rod_receptance,
-    state_space as state_space,
-    track_drive_modes as track_drive_modes,
-    update_model as update_model,
-)
-from ._filters import (
-    MCM as MCM,
-    AbstractFilter as AbstractFilter,
-    DiscreteFilter as DiscreteFilter,
-    NotchFilter as NotchFilter,
-    PeakFilter as PeakFilter,
-)
-from ._lti import LTI as LTI
-from ._lumped import (
-    LumpedModel as LumpedModel,
-    chain_model as chain_model,
-    three_mass as three_mass,
-)
-from ._modal import (
-    ModalFit as ModalFit,
-    identify_modes as identify_modes,
-    identify_modes_batched as identify_modes_batched,
-    track_modes as track_modes,
-)
-from ._results import RESULTS as RESULTS
-from ._simulation import (
-    SIMULATION_OUTPUTS as SIMULATION_OUTPUTS,
-    AbstractLoopModel as AbstractLoopModel,
-    Continuous as Continuous,
-    ExponentialFOH as ExponentialFOH,
-    PadeODE as PadeODE,
-    SampledData as SampledData,
-    Simulation as Simulation,
-    simulate as simulate,
-)
-from ._trajectory import (
-    Trajectory as Trajectory,
-    concatenate as concatenate,
-    jerk_limited as jerk_limited,
-    reciprocating as reciprocating,
-)
+if "jax" in sys.modules:
+    sys.modules["jax"].config.update("jax_enable_x64", True)
+else:
+    os.environ.setdefault("JAX_ENABLE_X64", "1")
+
+_EXPORTS = {
+    "._analysis": (
+        "check_stability",
+        "closed_loop",
+        "loop_margins",
+        "LoopMargins",
+        "open_loop",
+        "OpenLoop",
+        "Stability",
+        "stability_margins",
+    ),
+    "._control": (
+        "CLOSED_LOOP_INPUTS",
+        "CLOSED_LOOP_OUTPUTS",
+        "DEFAULT_PADE_ORDER",
+        "LAW_SIGNALS",
+        "PI",
+        "PID",
+        "AbstractBlock",
+        "AbstractController",
+        "DoubleLoop",
+        "FilterBlock",
+        "Law",
+        "Margins",
+        "pade",
+        "Path",
+        "PIDLoop",
+        "Servo",
+    ),
+    "._control._reference": (
+        "reference_mcm",
+        "reference_pid",
+        "reference_servo",
+        "rigid_feedforward",
+    ),
+    "._coupling": (
+        "couple",
+        "joint_receptance",
+    ),
+    "._drive": (
+        "DEFAULT_BAND_HZ",
+        "DEFAULT_ELEMENTS",
+        "INPUTS",
+        "OUTPUTS",
+        "TABLE_1",
+        "TABLE_1_POSITION_M",
+        "VELOCITY_OUTPUTS",
+        "Axial",
+        "BallScrewDrive",
+        "Carriage",
+        "count_modes",
+        "drive_modes",
+        "DriveModes",
+        "fe_matrices",
+        "FEMatrices",
+        "ModalData",
+        "ModelUpdate",
+        "NutJoint",
+        "reference_drive",
+        "Rod",
+        "rod_receptance",
+        "Rotary",
+        "Screw",
+        "state_space",
+        "StateSpace",
+        "Support",
+        "track_drive_modes",
+        "update_model",
+    ),
+    "._filters": (
+        "MCM",
+        "AbstractFilter",
+        "DiscreteFilter",
+        "NotchFilter",
+        "PeakFilter",
+    ),
+    "._lti": (
+        "LTI",
+    ),
+    "._lumped": (
+        "chain_model",
+        "LumpedModel",
+        "three_mass",
+    ),
+    "._modal": (
+        "identify_modes",
+        "identify_modes_batched",
+        "ModalFit",
+        "track_modes",
+    ),
+    "._results": (
+        "RESULTS",
+    ),
+    "._simulation": (
+        "SIMULATION_OUTPUTS",
+        "AbstractLoopModel",
+        "Continuous",
+        "ExponentialFOH",
+        "PadeODE",
+        "SampledData",
+        "simulate",
+        "Simulation",
+    ),
+    "._trajectory": (
+        "concatenate",
+        "jerk_limited",
+        "reciprocating",
+        "Trajectory",
+    ),
+}
+_WHERE = {name: module for module, names in _EXPORTS.items() for name in names}
+__all__ = sorted(_WHERE)
+
+
+def __getattr__(name: str):
+    module = _WHERE.get(name)
+    if module is None and name.startswith("_") and not name.startswith("__"):
+        try:  # a private submodule, for introspection and tests
+            return importlib.import_module("." + name, __name__)
+        except ModuleNotFoundError:
+            pass
+    if module is None:
+        raise AttributeError(f"module 'fdjax' has no attribute {name!r}")
+    import jax
+
+    jax.config.update("jax_enable_x64", True)  # also when JAX was imported in between
+    value = getattr(importlib.import_module(module, __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(__all__))
+
+
+if TYPE_CHECKING:
+    from ._analysis import (
+        LoopMargins as LoopMargins,
+        OpenLoop as OpenLoop,
+        Stability as Stability,
+        check_stability as check_stability,
+        closed_loop as closed_loop,
+        loop_margins as loop_margins,
+        open_loop as open_loop,
+        stability_margins as stability_margins,
+    )
+    from ._control import (
+        CLOSED_LOOP_INPUTS as CLOSED_LOOP_INPUTS,
+        CLOSED_LOOP_OUTPUTS as CLOSED_LOOP_OUTPUTS,
+        DEFAULT_PADE_ORDER as DEFAULT_PADE_ORDER,
+        LAW_SIGNALS as LAW_SIGNALS,
+        PI as PI,
+        PID as PID,
+        AbstractBlock as AbstractBlock,
+        AbstractController as AbstractController,
+        DoubleLoop as DoubleLoop,
+        FilterBlock as FilterBlock,
+        Law as Law,
+        Margins as Margins,
+        Path as Path,
+        PIDLoop as PIDLoop,
+        Servo as Servo,
+        pade as pade,
+    )
+    from ._control._reference import (
+        reference_mcm as reference_mcm,
+        reference_pid as reference_pid,
+        reference_servo as reference_servo,
+        rigid_feedforward as rigid_feedforward,
+    )
+    from ._coupling import (
+        couple as couple,
+        joint_receptance as joint_receptance,
+    )
+    from ._drive import (
+        DEFAULT_BAND_HZ as DEFAULT_BAND_HZ,
+        DEFAULT_ELEMENTS as DEFAULT_ELEMENTS,
+        INPUTS as INPUTS,
+        OUTPUTS as OUTPUTS,
+        TABLE_1 as TABLE_1,
+        TABLE_1_POSITION_M as TABLE_1_POSITION_M,
+        VELOCITY_OUTPUTS as VELOCITY_OUTPUTS,
+        Axial as Axial,
+        BallScrewDrive as BallScrewDrive,
+        Carriage as Carriage,
+        DriveModes as DriveModes,
+        FEMatrices as FEMatrices,
+        ModalData as ModalData,
+        ModelUpdate as ModelUpdate,
+        NutJoint as NutJoint,
+        Rod as Rod,
+        Rotary as Rotary,
+        Screw as Screw,
+        StateSpace as StateSpace,
+        Support as Support,
+        count_modes as count_modes,
+        drive_modes as drive_modes,
+        fe_matrices as fe_matrices,
+        reference_drive as reference_drive,
+        rod_receptance as rod_receptance,
+        state_space as state_space,
+        track_drive_modes as track_drive_modes,
+        update_model as update_model,
+    )
+    from ._filters import (
+        MCM as MCM,
+        AbstractFilter as AbstractFilter,
+        DiscreteFilter as DiscreteFilter,
+        NotchFilter as NotchFilter,
+        PeakFilter as PeakFilter,
+    )
+    from ._lti import (
+        LTI as LTI,
+    )
+    from ._lumped import (
+        LumpedModel as LumpedModel,
+        chain_model as chain_model,
+        three_mass as three_mass,
+    )
+    from ._modal import (
+        ModalFit as ModalFit,
+        identify_modes as identify_modes,
+        identify_modes_batched as identify_modes_batched,
+        track_modes as track_modes,
+    )
+    from ._results import (
+        RESULTS as RESULTS,
+    )
+    from ._simulation import (
+        SIMULATION_OUTPUTS as SIMULATION_OUTPUTS,
+        AbstractLoopModel as AbstractLoopModel,
+        Continuous as Continuous,
+        ExponentialFOH as ExponentialFOH,
+        PadeODE as PadeODE,
+        SampledData as SampledData,
+        Simulation as Simulation,
+        simulate as simulate,
+    )
+    from ._trajectory import (
+        Trajectory as Trajectory,
+        concatenate as concatenate,
+        jerk_limited as jerk_limited,
+        reciprocating as reciprocating,
+    )

@@ -1,9 +1,9 @@
 r"""The reference settings of the paper's closed-loop figures (Figs. 14, 16, 17): the servo, the
 hand-set MCM and PID, and the feed-forward of the rigid drive.
 
-These are hand-set until the tuning issue replaces them; :mod:`fdjax.cli` reproduces the
-figures with them and the tests pin them, so they live here, once, as functions of the drive and
-the servo rather than as numbers copied where they are used.
+These are hand-set starting points (gradient tuning improves on them); :mod:`fdjax.cli`
+reproduces the figures with them and the tests pin them, so they live here, once, as functions
+of the drive and the servo rather than as numbers copied where they are used.
 """
 
 from __future__ import annotations

@@ -75,6 +75,11 @@ TABLE_1 = ModalData(
 TABLE_1_POSITION_M = 0.115
 
 
+TOLERANCES = (0.03, 0.25, 15.0)
+"""Default calibration tolerances: frequency 3 % (relative), damping 25 % (relative), resonant
+phase 15° (modulo 360°)."""
+
+
 class ModelUpdate(eqx.Module):
     """Result of :func:`update_model`.
 
@@ -103,14 +108,25 @@ class ModelUpdate(eqx.Module):
     steps: Array
     success: Array
 
-    def within(self, tolerances=(0.03, 0.25, 15.0)) -> np.ndarray:
+    def within(self, tolerances=TOLERANCES) -> np.ndarray:
         """Boolean (3, n): which targets meet the given (frequency, damping, phase) tolerances."""
-        tf, tz, tp = tolerances
-        return np.stack([
-            np.abs(np.asarray(self.frequency_error)) <= tf,
-            np.abs(np.asarray(self.damping_error)) <= tz,
-            np.abs(np.asarray(self.phase_error_deg)) <= tp,
-        ])
+        return meets((self.frequency_error, self.damping_error, self.phase_error_deg), tolerances)
+
+
+def modal_errors(modes: DriveModes, target: ModalData) -> tuple[Array, Array, Array]:
+    """Errors of modes paired with their targets, index by index: f/f* − 1, ζ/ζ* − 1 and the
+    resonant phase's difference wrapped to (−180°, 180°]."""
+    return (
+        modes.frequency_hz / target.frequency_hz - 1,
+        modes.damping / target.damping - 1,
+        _wrap_deg(modes.phase_deg - target.phase_deg, 180.0),
+    )
+
+
+def meets(errors, tolerances=TOLERANCES) -> np.ndarray:
+    """Boolean (3, n): which of the (frequency, damping, phase) ``errors`` of
+    :func:`modal_errors` lie within ``tolerances``."""
+    return np.stack([np.abs(np.asarray(e)) <= t for e, t in zip(errors, tolerances)])
 
 
 def _pair(modes: DriveModes, target: ModalData, visibility: float) -> Array:
@@ -342,9 +358,8 @@ def update_model(
         modes=paired,
         target=target,
         residual=r,
-        frequency_error=paired.frequency_hz / target.frequency_hz - 1,
-        damping_error=paired.damping / target.damping - 1,
-        phase_error_deg=_wrap_deg(paired.phase_deg - target.phase_deg, 180.0),
+        **dict(zip(("frequency_error", "damping_error", "phase_error_deg"),
+                   modal_errors(paired, target))),
         parameters={p: float(_getter(p)(fitted)) for p in paths},
         steps=steps,
         success=success,
