@@ -83,14 +83,63 @@ class LTI(eqx.Module):
 
 
 def transfer(A, B, C, D, x) -> Array:
-    """C (xI − A)⁻¹ B + D at complex x (any shape) by a direct solve."""
+    """C (xI − A)⁻¹ B + D at complex x (any shape) by a direct solve (:func:`solve`)."""
     x = _c(x)
     n = A.shape[-1]
     if n == 0:
         return jnp.broadcast_to(_c(D), (*x.shape, *D.shape))
     M = x[..., None, None] * jnp.eye(n, dtype=jnp.complex128) - _c(A)
-    X = jnp.linalg.solve(M, jnp.broadcast_to(_c(B), (*x.shape, *B.shape)))
+    X = solve(M, jnp.broadcast_to(_c(B), (*x.shape, *B.shape)))
     return _c(C) @ X + _c(D)
+
+
+def solve(M, R) -> Array:
+    """M⁻¹R for a batch of small dense systems M (…, n, n), R (…, n, k): Gaussian elimination
+    with partial pivoting (backward stable) in plain array operations, unrolled over the columns
+    for small n and as a ``fori_loop`` for larger ones.  XLA:CPU has dead-locked (every thread
+    asleep) running batched LAPACK solves inside the vectorised, differentiated margin
+    refinement on 2-core machines; this form has no custom call."""
+    n = M.shape[-1]
+    rows = jnp.arange(n)
+    A = jnp.concatenate([M, R], -1)
+
+    def eliminate(j, A):
+        # partial pivoting: the largest entry of column j at or below the diagonal
+        colj = jnp.take(A, j, axis=-1)
+        p = jnp.argmax(jnp.where(rows >= j, jnp.abs(colj), -1.0), axis=-1)
+        row_j = jnp.take(A, j, axis=-2)
+        row_p = jnp.take_along_axis(A, p[..., None, None], -2)[..., 0, :]
+        is_p = rows == p[..., None]
+        A = jnp.where((rows == j)[:, None], row_p[..., None, :],
+                      jnp.where(is_p[..., :, None], row_j[..., None, :], A))
+        colj, row_j = jnp.take(A, j, axis=-1), jnp.take(A, j, axis=-2)
+        pivot = jnp.take(row_j, j, axis=-1)
+        factor = jnp.where(rows > j, colj / pivot[..., None], 0.0)
+        return A - factor[..., :, None] * row_j[..., None, :]
+
+    def substitute(jj, X):  # rows of X below j are known, the rest still zero
+        j = n - 1 - jj
+        u = jnp.take(U, j, axis=-2)
+        xj = (jnp.take(Y, j, axis=-2) - jnp.einsum("...i,...ik->...k", u, X)) / jnp.take(
+            u, j, axis=-1)[..., None]
+        return jnp.where((rows == j)[:, None], xj[..., None, :], X)
+
+    if n <= _UNROLL:
+        for j in range(n):
+            A = eliminate(j, A)
+    else:
+        A = jax.lax.fori_loop(0, n, eliminate, A)
+    U, Y = A[..., :n], A[..., n:]
+    X = jnp.zeros_like(Y)
+    if n <= _UNROLL:
+        for jj in range(n):
+            X = substitute(jj, X)
+    else:
+        X = jax.lax.fori_loop(0, n, substitute, X)
+    return X
+
+
+_UNROLL = 16  # unrolled elimination up to this size (compile time grows with n)
 
 
 def series(first: LTI, second: LTI) -> LTI:
