@@ -95,10 +95,10 @@ def transfer(A, B, C, D, x) -> Array:
 
 def solve(M, R) -> Array:
     """M⁻¹R for a batch of small dense systems M (…, n, n), R (…, n, k): Gaussian elimination
-    with partial pivoting (backward stable) in plain array operations, unrolled over the columns
-    for small n and as a ``fori_loop`` for larger ones.  XLA:CPU has dead-locked (every thread
-    asleep) running batched LAPACK solves inside the vectorised, differentiated margin
-    refinement on 2-core machines; this form has no custom call."""
+    with partial pivoting (backward stable) in plain array operations, one ``fori_loop`` step
+    per column.  XLA:CPU has dead-locked (every thread asleep) running batched LAPACK solves
+    inside the vectorised, differentiated margin refinement on 2-core machines; this form has
+    no custom call.  (Unrolled, the nested jets of that refinement compile for minutes.)"""
     n = M.shape[-1]
     rows = jnp.arange(n)
     A = jnp.concatenate([M, R], -1)
@@ -124,22 +124,13 @@ def solve(M, R) -> Array:
             u, j, axis=-1)[..., None]
         return jnp.where((rows == j)[:, None], xj[..., None, :], X)
 
-    if n <= _UNROLL:
-        for j in range(n):
-            A = eliminate(j, A)
-    else:
-        A = jax.lax.fori_loop(0, n, eliminate, A)
+    A = jax.lax.fori_loop(0, n, eliminate, A)
     U, Y = A[..., :n], A[..., n:]
     X = jnp.zeros_like(Y)
-    if n <= _UNROLL:
-        for jj in range(n):
-            X = substitute(jj, X)
-    else:
-        X = jax.lax.fori_loop(0, n, substitute, X)
+    X = jax.lax.fori_loop(0, n, substitute, X)
     return X
 
 
-_UNROLL = 16  # unrolled elimination up to this size (compile time grows with n)
 
 
 def series(first: LTI, second: LTI) -> LTI:
