@@ -299,7 +299,7 @@ def test_failures_carry_their_message_under_jit_and_vmap(drive):
     # the default PID (gain margin ≈ 9 over the travel) with every gain × 15: unstable
     hot = fdjax.PIDLoop(kp=15 * 1.5e3, ki=15 * 5.0e3, kd=15 * 100.0)
     ref = fdjax.reciprocating(stroke=2e-3, v_max=0.05, a_max=2.0, j_max=400.0, cycles=1)
-    sim = lambda c, p, **kw: fdjax.simulate(c, drive, ref, position_m=p, n_modes=6, **kw)
+    sim = lambda c, p, r=ref, **kw: fdjax.simulate(c, drive, r, position_m=p, n_modes=6, **kw)
     with pytest.raises(RuntimeError, match=r"closed loop unstable at table position 0.3 m: pole "
                                            r"at [0-9.]+ Hz growing at"):
         sim(hot, 0.3)
@@ -311,9 +311,9 @@ def test_failures_carry_their_message_under_jit_and_vmap(drive):
     far = fdjax.reciprocating(stroke=0.05, v_max=0.1, a_max=2.0, j_max=400.0, cycles=1)
     with pytest.raises(ValueError, match=r"from table position 0.68 m reaches 0.73 m, outside the "
                                          r"travel \[0.1, 0.7\] m"):
-        sim(fdjax.DoubleLoop(), 0.68)
+        sim(fdjax.DoubleLoop(), 0.68, far)
     with pytest.raises(Exception, match="the reference motion takes the table outside"):
-        jax.block_until_ready(jax.jit(lambda p: sim(fdjax.DoubleLoop(), p).x2)(0.68))
+        jax.block_until_ready(jax.jit(lambda p: sim(fdjax.DoubleLoop(), p, far).x2)(0.68))
     with pytest.raises(Exception, match="the reference motion takes the table outside"):
         jax.block_until_ready(jax.jit(jax.vmap(
             lambda p: fdjax.simulate(fdjax.DoubleLoop(), drive, far, position_m=p, n_modes=6,
