@@ -14,3 +14,31 @@ import fdjax  # noqa: F401, E402  (importing fdjax switches float64 on)
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_dtype_promotion", "strict")
+
+
+# XLA:CPU maps the machine code of every compiled program into memory; a long test session
+# compiles thousands of programs and reaches the kernel's limit on memory maps (65530 by
+# default), after which the next compilation crashes.  Dropping JAX's caches releases them.
+_MAPS = f"/proc/{os.getpid()}/maps"
+_MAX_MAPS = 30_000
+
+
+def _n_maps() -> int:
+    try:
+        with open(_MAPS) as f:
+            return sum(1 for _ in f)
+    except OSError:  # not Linux
+        return 0
+
+
+import gc  # noqa: E402
+
+import pytest  # noqa: E402
+
+
+@pytest.fixture(autouse=True)
+def _release_compiled_programs():
+    yield
+    if _n_maps() > _MAX_MAPS:
+        jax.clear_caches()
+        gc.collect()
