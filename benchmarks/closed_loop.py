@@ -65,6 +65,7 @@ TARGETS = {"one_run_sampled": 20.0, "one_run_pade_ode": 0.5, "batch_sampled": 30
 REF = fdjax.reciprocating(stroke=5e-3, v_max=0.1, a_max=2.0, j_max=200.0, cycles=2)
 DRIVE = fdjax.reference_drive()
 N_MODES = fdjax.count_modes(DRIVE)
+TWIN = fdjax.TwinOptions(kept_modes=N_MODES)
 
 
 def loadavg():
@@ -187,7 +188,7 @@ def run_pade(loop, plant):
 def run_batch(loop, positions):
     def one(p):
         sim = fdjax.simulate(loop, DRIVE, REF, SAMPLED, servo=SERVO, duration=DURATION,
-                             position_m=p, n_modes=N_MODES, throw=False)
+                             position_m=p, twin=TWIN, throw=False)
         return outputs(sim), sim.result._value
 
     return jax.vmap(one)(positions)
@@ -300,7 +301,7 @@ def case_batch(args, loop, t, U):
     # helpers of fdjax._simulation._lifted: diagnostic)
     from fdjax._simulation._lifted import growth_rate, lifted_outputs
 
-    ss = jax.jit(jax.vmap(lambda p: fdjax.state_space(DRIVE, p, n_modes=N_MODES)))
+    ss = jax.jit(jax.vmap(lambda p: fdjax.state_space(DRIVE, p, twin=TWIN)))
     plants = ss(pos)
     sl = eqx.filter_jit(jax.vmap(lambda pl: SAMPLED.closed_loop(loop, pl, SERVO)))
     SL = sl(plants)

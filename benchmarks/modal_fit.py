@@ -163,7 +163,7 @@ def main():
     f_fd = np.asarray(fits.frequency_hz)
     agree = float(np.max(np.abs(f_fd / f_scipy - 1)))
     f_err = np.abs(f_fd / truth[:, 0] - 1)
-    z_err = np.abs(np.asarray(fits.damping) / truth[:, 1] - 1)
+    z_err = np.abs(np.asarray(fits.damping_ratio) / truth[:, 1] - 1)
     p_err = np.abs((np.asarray(fits.phase_deg) - truth[:, 2] + 180) % 360 - 180)
 
     rows = {

@@ -84,9 +84,9 @@ def report(title, res):
     print("mode | Table 1 f, zeta, phase | model f, zeta, phase | df %, dzeta %, dphase deg | met")
     for i in range(T.frequency_hz.shape[0]):
         print(
-            f"  {i + 1}  | {float(T.frequency_hz[i]):6.0f} {float(T.damping[i]):.3f} "
+            f"  {i + 1}  | {float(T.frequency_hz[i]):6.0f} {float(T.damping_ratio[i]):.3f} "
             f"{float(T.phase_deg[i]):6.0f} | {float(res.modes.frequency_hz[i]):7.1f} "
-            f"{float(res.modes.damping[i]):.4f} {float(res.modes.phase_deg[i]):7.1f} | "
+            f"{float(res.modes.damping_ratio[i]):.4f} {float(res.modes.phase_deg[i]):7.1f} | "
             f"{100 * float(res.frequency_error[i]):+5.1f} "
             f"{100 * float(res.damping_error[i]):+6.1f} "
             f"{float(res.phase_error_deg[i]):+7.1f} | "
@@ -125,6 +125,6 @@ if __name__ == "__main__":
     fit = min(fits, key=lambda x: float(x.fit_error))
     print(f"\nidentify_modes on the exact h21 (10–2000 Hz, 7 terms, best of 3 starts, fit "
           f"error {float(fit.fit_error):.1e}): mode, f, zeta, phase")
-    rows = zip(*(np.asarray(x)[1:6] for x in (fit.frequency_hz, fit.damping, fit.phase_deg)))
+    rows = zip(*(np.asarray(x)[1:6] for x in (fit.frequency_hz, fit.damping_ratio, fit.phase_deg)))
     for i, (a, b, c) in enumerate(rows):
         print(f"  {i + 1}  {a:8.1f} {b:.4f} {c:7.1f}")

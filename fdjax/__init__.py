@@ -96,6 +96,7 @@ _EXPORTS = {
         "StateSpace",
         "Support",
         "track_drive_modes",
+        "TwinOptions",
         "update_model",
     ),
     "._filters": (
@@ -224,6 +225,7 @@ if TYPE_CHECKING:
         Screw as Screw,
         StateSpace as StateSpace,
         Support as Support,
+        TwinOptions as TwinOptions,
         count_modes as count_modes,
         drive_modes as drive_modes,
         fe_matrices as fe_matrices,

@@ -37,7 +37,7 @@ from ._control._controllers import AbstractController
 from ._control._margins import Margins, grid_margins, model_margins
 from ._control._servo import Servo
 from ._drive._model import BallScrewDrive
-from ._drive._twin import StateSpace, count_modes, state_space
+from ._drive._twin import StateSpace, TwinOptions, _twin_options, state_space
 from ._lti import LTI
 from ._results import RESULTS
 from ._simulation._methods import AbstractLoopModel, SampledData
@@ -156,24 +156,14 @@ def _check_method(method, fn: str) -> AbstractLoopModel:
     return method
 
 
-def _twin_modes(drive, n_modes, n_elements, fn):
-    if n_modes is None:
-        return int(count_modes(drive, n_elements=n_elements))
-    return _checks.static_int(n_modes, f"{fn}(n_modes=...)", 2)
-
-
-def _plant(plant, position_m, fn: str, *, n_modes=None, n_elements=None, freq_hz=None,
-           screw_ratio=None):
+def _plant(plant, position_m, fn: str, *, twin=None, freq_hz=None, screw_ratio=None):
     """Normalise the plant to ("model", StateSpace | (drive, positions)) or ("frf", H)."""
-    from ._drive._twin import DEFAULT_ELEMENTS
-
-    n_el = DEFAULT_ELEMENTS if n_elements is None else n_elements
+    twin = _twin_options(twin, fn)
     if isinstance(plant, BallScrewDrive):
         if position_m is None:
             raise ValueError(f"`{fn}(position_m=...)` is required when the plant is a drive")
         pos = plant._check_positions(position_m, fn)
-        m = _twin_modes(plant, n_modes, n_el, fn)
-        return "drive", (plant, pos, m, int(n_el)), jnp.ndim(position_m) == 0
+        return "drive", (plant, pos, twin.resolve(plant, fn)), jnp.ndim(position_m) == 0
     if position_m is not None and isinstance(plant, StateSpace):
         raise ValueError(f"`{fn}(position_m=...)` is only for a BallScrewDrive or FRF plant")
     if isinstance(plant, StateSpace):
@@ -205,14 +195,14 @@ def _plant(plant, position_m, fn: str, *, n_modes=None, n_elements=None, freq_hz
     return "frf", (H, sr, pos), H.ndim == 3
 
 
-def _entry(fn, controller, plant, servo, method, position_m, n_modes, n_elements, *,
+def _entry(fn, controller, plant, servo, method, position_m, twin, *,
            freq_hz=None, min_points=1, screw_ratio=None):
     """The checks every entry point makes: (controller, servo, method, kind, plant, scalar,
     frequency grid or None)."""
     controller = _check_controller(controller, fn)
     servo, method = _check_servo(servo, fn), _check_method(method, fn)
     f = None if freq_hz is None else _grid(freq_hz, fn, min_points)
-    kind, p, scalar = _plant(plant, position_m, fn, n_modes=n_modes, n_elements=n_elements,
+    kind, p, scalar = _plant(plant, position_m, fn, twin=twin,
                              freq_hz=f, screw_ratio=screw_ratio)
     if f is None and kind == "frf":
         raise TypeError(f"`{fn}(plant=...)` must be a drive or a StateSpace, not an FRF array")
@@ -224,9 +214,9 @@ def _entry(fn, controller, plant, servo, method, position_m, n_modes, n_elements
 def _map_twins(kind, p, body, has_eig=False):
     """``body(twin)`` for each twin: a drive's positions, a StateSpace batch, or one twin."""
     if kind == "drive":
-        drive, pos, m, n_el = p
+        drive, pos, twin = p
         return map_positions(
-            lambda y: body(state_space(drive, y, n_modes=m, n_elements=n_el)), pos,
+            lambda y: body(state_space(drive, y, twin=twin)), pos,
             has_eig=has_eig,
         )
     if p.A.ndim == 3:
@@ -275,8 +265,7 @@ def open_loop(
     method: AbstractLoopModel = SampledData(),
     position_m: Float[ArrayLike, "*pos"] | None = None,
     screw_ratio: Float[ArrayLike, ""] | None = None,
-    n_modes: int | None = None,
-    n_elements: int | None = None,
+    twin: TwinOptions | None = None,
 ) -> OpenLoop:
     r"""Open-loop frequency responses of ``controller`` around ``plant`` (module docstring).
 
@@ -298,11 +287,11 @@ def open_loop(
         position_m: table position(s) (m) for a drive plant (or an FRF's, for a scheduled
             controller).
         screw_ratio: i_sc (m/rad) for an FRF plant.
-        n_modes, n_elements: the twin's kept modes (default: the 4 kHz band's count) and screw
-            elements, for a drive plant.
+        twin: how a drive plant becomes its twin (:class:`fdjax.TwinOptions`; default the
+            modes below 4 kHz).
     """
     controller, servo, method, kind, p, scalar, f = _entry(
-        "open_loop", controller, plant, servo, method, position_m, n_modes, n_elements,
+        "open_loop", controller, plant, servo, method, position_m, twin,
         freq_hz=freq_hz, screw_ratio=screw_ratio,
     )
     loops = _open_loop_jit(controller, kind, p, f, servo, method)
@@ -374,8 +363,7 @@ def loop_margins(
     method: AbstractLoopModel = SampledData(),
     position_m: Float[ArrayLike, "*pos"] | None = None,
     screw_ratio: Float[ArrayLike, ""] | None = None,
-    n_modes: int | None = None,
-    n_elements: int | None = None,
+    twin: TwinOptions | None = None,
 ) -> LoopMargins:
     r"""Gain, phase and modulus margins (with their frequencies) of the loop broken at the plant
     input, at the speed feedback and at the scale.
@@ -391,7 +379,7 @@ def loop_margins(
     Args: as :func:`open_loop` (at least 3 frequencies).
     """
     controller, servo, method, kind, p, scalar, f = _entry(
-        "loop_margins", controller, plant, servo, method, position_m, n_modes, n_elements,
+        "loop_margins", controller, plant, servo, method, position_m, twin,
         freq_hz=freq_hz, min_points=3, screw_ratio=screw_ratio,
     )
     return _squeeze(_loop_margins_jit(controller, kind, p, f, servo, method), scalar, kind)
@@ -433,8 +421,7 @@ def closed_loop(
     servo: Servo = Servo(),
     method: AbstractLoopModel = SampledData(),
     position_m: Float[ArrayLike, "*pos"] | None = None,
-    n_modes: int | None = None,
-    n_elements: int | None = None,
+    twin: TwinOptions | None = None,
 ) -> LTI:
     r"""The loop closed around the twin, as one :class:`fdjax.LTI` with inputs (r, ṙ, r̈, F3)
     (:data:`fdjax.CLOSED_LOOP_INPUTS`) and outputs (θ1, x2, x3, T1)
@@ -449,7 +436,7 @@ def closed_loop(
     Args: as :func:`open_loop` (no frequency grid; the plant is a drive or a StateSpace).
     """
     controller, servo, method, kind, p, scalar, _ = _entry(
-        "closed_loop", controller, plant, servo, method, position_m, n_modes, n_elements
+        "closed_loop", controller, plant, servo, method, position_m, twin
     )
     return _squeeze(_closed_loop_jit(controller, kind, p, servo, method), scalar, kind)
 
@@ -469,8 +456,7 @@ def check_stability(
     servo: Servo = Servo(),
     method: AbstractLoopModel = SampledData(),
     position_m: Float[ArrayLike, "*pos"] | None = None,
-    n_modes: int | None = None,
-    n_elements: int | None = None,
+    twin: TwinOptions | None = None,
     throw: bool = False,
 ) -> Stability:
     r"""Closed-loop stability from the eigenvalues of :func:`closed_loop`.
@@ -486,7 +472,7 @@ def check_stability(
             result code's own message.  Off by default: an unstable loop is an answer.
     """
     controller, servo, method, kind, p, scalar, _ = _entry(
-        "check_stability", controller, plant, servo, method, position_m, n_modes, n_elements
+        "check_stability", controller, plant, servo, method, position_m, twin
     )
     result = _squeeze(_stability_jit(controller, kind, p, servo, method), scalar, kind)
     if throw:

@@ -166,16 +166,18 @@ def table_1_comparison(drive) -> dict:
     T = fdjax.TABLE_1
     m = fdjax.drive_modes(drive, fdjax.TABLE_1_POSITION_M, n_modes=6)
     lowest = SimpleNamespace(**{k: np.asarray(getattr(m, k))[:5]
-                                for k in ("frequency_hz", "damping", "phase_deg")})
+                                for k in ("frequency_hz", "damping_ratio", "phase_deg")})
     errors = modal_errors(lowest, T)
     ok = meets(errors)
     rows = []
     for k in range(5):
-        f, z, ph = (float(np.asarray(x)[k]) for x in (m.frequency_hz, m.damping, m.phase_deg))
-        tf, tz, tph = (float(np.asarray(x)[k]) for x in (T.frequency_hz, T.damping, T.phase_deg))
+        f, z, ph = (float(np.asarray(x)[k]) for x in (m.frequency_hz, m.damping_ratio,
+                                                      m.phase_deg))
+        tf, tz, tph = (float(np.asarray(x)[k]) for x in (T.frequency_hz, T.damping_ratio,
+                                                         T.phase_deg))
         met = dict(zip(("frequency", "damping", "phase"), (bool(x) for x in ok[:, k])))
         rows.append({"mode": k + 1, "frequency_hz": f, "table_1_frequency_hz": tf,
-                     "damping": z, "table_1_damping": tz, "phase_deg": ph,
+                     "damping_ratio": z, "table_1_damping_ratio": tz, "phase_deg": ph,
                      "table_1_phase_deg": tph,
                      "phase_difference_deg": float(np.asarray(errors[2])[k]), "met": met})
     tol = dict(zip(("frequency", "damping", "phase_deg"), TOLERANCES))
@@ -324,10 +326,12 @@ def modes(out: str | None, n_positions: int, n_modes: int, source: str) -> dict:
         result = fdjax.track_modes(fdjax.identify_modes_batched(f, H, n_modes, throw=False))
     else:
         result = fdjax.track_drive_modes(fdjax.drive_modes(drive, pos, n_modes=n_modes))
-    fr, z, ph = (np.asarray(x) for x in (result.frequency_hz, result.damping, result.phase_deg))
+    fr, z, ph = (np.asarray(x) for x in (result.frequency_hz, result.damping_ratio,
+                                         result.phase_deg))
     rows = [
         {"position_mm": round(float(pos[i]) * 1e3, 3), "mode": k + 1,
-         "frequency_hz": float(fr[i, k]), "damping": float(z[i, k]), "phase_deg": float(ph[i, k])}
+         "frequency_hz": float(fr[i, k]), "damping_ratio": float(z[i, k]),
+         "phase_deg": float(ph[i, k])}
         for i in range(len(pos)) for k in range(fr.shape[1])
     ]
     how = "identified from the FRF" if source == "fit" else "eigen-analysis of the twin"
@@ -345,7 +349,7 @@ def modes(out: str | None, n_positions: int, n_modes: int, source: str) -> dict:
         with open(os.path.join(out, "modes.json"), "w") as fh:
             json.dump({"entry": "h21 = x2/T1", "source": source, "modes": rows}, fh, indent=1)
         print(f"written {out}/modes.csv and {out}/modes.json")
-    return {"positions_m": pos, "frequency_hz": fr, "damping": z, "phase_deg": ph}
+    return {"positions_m": pos, "frequency_hz": fr, "damping_ratio": z, "phase_deg": ph}
 
 
 def _count(what: str, minimum: int):

@@ -26,7 +26,7 @@ def test_modes_agree_with_the_exact_frf(drive):
     grid = np.linspace(0.8 * f[k], 1.2 * f[k], 4001)
     h = np.abs(np.asarray(drive.frf([0.3], grid))[0, :, 1, 0])
     peak = grid[np.argmax(h)]
-    assert abs(peak / f[k] - 1) < 2 * float(m.damping[k]) ** 2 + 2e-3  # FE mesh + damped peak
+    assert abs(peak / f[k] - 1) < 2 * float(m.damping_ratio[k]) ** 2 + 2e-3  # FE mesh + damped peak
     # resonant phase: phase of the mode's own term at ω_r; for the dominant mode the whole FRF
     # is that term plus a smooth background, so the FRF phase at ω_r is close
     hr = np.asarray(drive.frf([0.3], f[k : k + 1]))[0, 0, 1, 0]
@@ -56,7 +56,7 @@ def test_model_updating_recovers_known_parameters(drive):
         drive, [jnp.asarray(v) for v in true],
     )
     m = drive_modes(truth, 0.2, n_modes=6)
-    data = ModalData(m.frequency_hz[:5], m.damping[:5], m.phase_deg[:5])
+    data = ModalData(m.frequency_hz[:5], m.damping_ratio[:5], m.phase_deg[:5])
     bounds = {"nut.stiffness": (1e8, 1.5e9), "carriage.pitch_stiffness": (1e6, 1e8),
               "rotary.coupling_damping": (1e-2, 10.0)}
     res = update_model(drive, data, bounds, 0.2, max_steps=100)
@@ -142,8 +142,9 @@ def test_identified_modes_agree_with_eigen_analysis(drive, identified):
     fit = jax.tree_util.tree_map(lambda x: x[np.array([0, 2])], identified)
     model = drive_modes(drive, pos, n_modes=6)
     below = slice(0, 5)  # the five modes below 2 kHz; fit index 0 is the spare ζ ≈ 1 term
-    ff, zf, pf = (np.asarray(x)[:, 1:6] for x in (fit.frequency_hz, fit.damping, fit.phase_deg))
-    fm, zm, pm = (np.asarray(x)[:, below] for x in (model.frequency_hz, model.damping,
+    ff, zf, pf = (np.asarray(x)[:, 1:6] for x in (fit.frequency_hz, fit.damping_ratio,
+                                                  fit.phase_deg))
+    fm, zm, pm = (np.asarray(x)[:, below] for x in (model.frequency_hz, model.damping_ratio,
                                                      model.phase_deg))
     lam, last = _exact_poles(drive, jnp.asarray(pos), model.poles[:, below])
     assert float(jnp.max(last)) < 1e-12  # Newton converged
@@ -210,8 +211,8 @@ def test_reference_drive_meets_table_1_or_the_documented_shortfall(drive, identi
     # cross-check: the same modes identified from the exact FRF (no model internals), the
     # best of the vector-fitting starts (see FIT_STARTS) at Y_table = 115 mm
     assert FIT_POSITIONS[1] == y
-    fi, zi, pi = (np.asarray(x)[1, 1:6] for x in (identified.frequency_hz, identified.damping,
+    fi, zi, pi = (np.asarray(x)[1, 1:6] for x in (identified.frequency_hz, identified.damping_ratio,
                                                    identified.phase_deg))
     np.testing.assert_allclose(fi, np.asarray(m.frequency_hz[:5]), rtol=5e-3)
-    tf, tz, tp = (np.asarray(x) for x in (T.frequency_hz, T.damping, T.phase_deg))
+    tf, tz, tp = (np.asarray(x) for x in (T.frequency_hz, T.damping_ratio, T.phase_deg))
     _check_against_table_1(fi / tf - 1, zi / tz - 1, (pi - tp + 180) % 360 - 180)

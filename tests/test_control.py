@@ -27,6 +27,7 @@ TWO_PI = 2 * np.pi
 SERVO = fdjax.Servo()  # 8 kHz, d = 2
 T = SERVO.period
 N_MODES = 4  # a reduced twin: python-control's polynomial margins are exact at this order
+TWIN6, TWIN8 = fdjax.TwinOptions(kept_modes=6), fdjax.TwinOptions(kept_modes=8)
 PADE = 4
 FREQ_C = np.geomspace(1.0, 4000.0, 2000)
 FREQ_D = np.geomspace(1.0, 0.999 / (2 * T), 2000)  # below Nyquist
@@ -80,7 +81,7 @@ def drive():
 
 @pytest.fixture(scope="module")
 def twin(drive):
-    return fdjax.state_space(drive, 0.4, n_modes=N_MODES)
+    return fdjax.state_space(drive, 0.4, twin=fdjax.TwinOptions(kept_modes=N_MODES))
 
 
 def plant_ss(twin, rows=(1,)):
@@ -187,16 +188,16 @@ def test_new_controller_under_jit_vmap_grad(drive):
     pos = jnp.array([0.15, 0.4, 0.65])
 
     def rms(c, p, method=fdjax.SampledData()):
-        return fdjax.simulate(c, drive, ref, method, position_m=p, n_modes=8,
+        return fdjax.simulate(c, drive, ref, method, position_m=p, twin=TWIN8,
                               throw=False).rms_error()
 
     eager = np.array([float(rms(ctl, p)) for p in pos])
     np.testing.assert_allclose(jax.jit(jax.vmap(rms, (None, 0)))(ctl, pos), eager, rtol=1e-12)
     np.testing.assert_allclose(jax.jit(rms)(ctl, pos[1]), eager[1], rtol=1e-12)
     # margins over positions under vmap equal one at a time
-    mv = jax.vmap(lambda p: fdjax.loop_margins(ctl, fdjax.state_space(drive, p, n_modes=8),
+    mv = jax.vmap(lambda p: fdjax.loop_margins(ctl, fdjax.state_space(drive, p, twin=TWIN8),
                                                FREQ_D).position.phase_margin_deg)(pos)
-    one = fdjax.loop_margins(ctl, drive, FREQ_D, position_m=pos, n_modes=8)
+    one = fdjax.loop_margins(ctl, drive, FREQ_D, position_m=pos, twin=TWIN8)
     np.testing.assert_allclose(mv, one.position.phase_margin_deg, rtol=1e-10)
     # grad through the sampled simulation against central differences (in log k: h = 1e-5)
     g = eqx.filter_grad(lambda c: rms(c, 0.4))(ctl)
@@ -252,7 +253,7 @@ def test_sampled_margins_match_python_control(twin, with_mcm):
 def test_gradients_touch_only_the_tunables(drive):
     loop = fdjax.DoubleLoop(mcm=fdjax.MCM(fdjax.PeakFilter(0.3, TWO_PI * 120.0, 0.15, 0.4)))
     ref = fdjax.reciprocating(stroke=2e-3, v_max=0.05, a_max=2.0, j_max=400.0, cycles=1)
-    loss = lambda c: fdjax.simulate(c, drive, ref, position_m=0.3, n_modes=8).rms_error()
+    loss = lambda c: fdjax.simulate(c, drive, ref, position_m=0.3, twin=TWIN8).rms_error()
     g = eqx.filter_grad(loss)(loop)
     names = {jax.tree_util.keystr(k) for k, _ in jax.tree_util.tree_leaves_with_path(g)}
     assert names == {".log_kp", ".log_kv", ".log_ki", ".k_ffv", ".k_ffa", ".mcm.peak.K",
@@ -278,13 +279,13 @@ def test_one_compilation_for_new_positions(drive):
     ref = fdjax.reciprocating(stroke=1e-3, v_max=0.05, a_max=2.0, j_max=400.0, cycles=1)
     cases = [
         (_simulate._simulate_traced,
-         lambda p: fdjax.simulate(loop, drive, ref, position_m=p, n_modes=6)),
+         lambda p: fdjax.simulate(loop, drive, ref, position_m=p, twin=TWIN6)),
         (_analysis._loop_margins_traced,
-         lambda p: fdjax.loop_margins(loop, drive, FREQ_D[::8], position_m=p, n_modes=6)),
+         lambda p: fdjax.loop_margins(loop, drive, FREQ_D[::8], position_m=p, twin=TWIN6)),
         (_analysis._closed_loop_traced,
-         lambda p: fdjax.closed_loop(loop, drive, position_m=p, n_modes=6)),
+         lambda p: fdjax.closed_loop(loop, drive, position_m=p, twin=TWIN6)),
         (_analysis._stability_traced,
-         lambda p: fdjax.check_stability(loop, drive, position_m=p, n_modes=6)),
+         lambda p: fdjax.check_stability(loop, drive, position_m=p, twin=TWIN6)),
     ]
     for traced, call in cases:
         call(0.2)
@@ -299,7 +300,7 @@ def test_failures_carry_their_message_under_jit_and_vmap(drive):
     # the default PID (gain margin ≈ 9 over the travel) with every gain × 15: unstable
     hot = fdjax.PIDLoop(kp=15 * 1.5e3, ki=15 * 5.0e3, kd=15 * 100.0)
     ref = fdjax.reciprocating(stroke=2e-3, v_max=0.05, a_max=2.0, j_max=400.0, cycles=1)
-    sim = lambda c, p, r=ref, **kw: fdjax.simulate(c, drive, r, position_m=p, n_modes=6, **kw)
+    sim = lambda c, p, r=ref, **kw: fdjax.simulate(c, drive, r, position_m=p, twin=TWIN6, **kw)
     with pytest.raises(RuntimeError, match=r"closed loop unstable at table position 0.3 m: pole "
                                            r"at [0-9.]+ Hz growing at"):
         sim(hot, 0.3)
@@ -316,7 +317,7 @@ def test_failures_carry_their_message_under_jit_and_vmap(drive):
         jax.block_until_ready(jax.jit(lambda p: sim(fdjax.DoubleLoop(), p, far).x2)(0.68))
     with pytest.raises(Exception, match="the reference motion takes the table outside"):
         jax.block_until_ready(jax.jit(jax.vmap(
-            lambda p: fdjax.simulate(fdjax.DoubleLoop(), drive, far, position_m=p, n_modes=6,
+            lambda p: fdjax.simulate(fdjax.DoubleLoop(), drive, far, position_m=p, twin=TWIN6,
                                      moving=True).x2))(jnp.array([0.3, 0.68])))
     # a start position outside the travel, under jit
     with pytest.raises(Exception,
@@ -325,13 +326,13 @@ def test_failures_carry_their_message_under_jit_and_vmap(drive):
     # check_stability with throw under jit
     with pytest.raises(Exception, match="the closed loop is unstable"):
         jax.block_until_ready(jax.jit(
-            lambda p: fdjax.check_stability(hot, drive, position_m=p, n_modes=6,
+            lambda p: fdjax.check_stability(hot, drive, position_m=p, twin=TWIN6,
                                             throw=True).growth_rate)(0.3))
 
 
 def test_result_pytree_is_the_same_eager_and_jitted(drive):
     ref = fdjax.reciprocating(stroke=1e-3, v_max=0.05, a_max=2.0, j_max=400.0, cycles=1)
-    run = lambda p: fdjax.simulate(fdjax.DoubleLoop(), drive, ref, position_m=p, n_modes=6)
+    run = lambda p: fdjax.simulate(fdjax.DoubleLoop(), drive, ref, position_m=p, twin=TWIN6)
     a, b = run(0.3), jax.jit(run)(0.3)
     assert jax.tree_util.tree_structure(a) == jax.tree_util.tree_structure(b)
     # the same program, fused into the caller's: round-off of the recursion, measured 1.2e-14

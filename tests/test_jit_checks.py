@@ -223,16 +223,16 @@ def test_substructures_under_jit(drive):
 
 # ------------------------------------------------------------------------------------ twin
 def test_state_space_under_jit_and_vmap(drive):
-    f = jax.jit(lambda y: fdjax.state_space(drive, y, n_modes=4).A)
+    f = jax.jit(lambda y: fdjax.state_space(drive, y, twin=fdjax.TwinOptions(kept_modes=4)).A)
     _raises(r"`state_space\(position_m=\.\.\.\)` must be inside the travel", f, 0.05)
-    batch = jax.vmap(lambda y: fdjax.state_space(drive, y, n_modes=4).A)
+    batch = jax.vmap(lambda y: fdjax.state_space(drive, y, twin=fdjax.TwinOptions(kept_modes=4)).A)
     _raises(r"`state_space\(position_m=\.\.\.\)` must be inside the travel", batch,
             jnp.array([0.3, 0.71]))
     with pytest.raises(ValueError, match=r"`state_space\(position_m=\.\.\.\)` must be inside the "
                                          r"travel \[0\.1, 0\.7\] m, got nan"):
-        fdjax.state_space(drive, np.nan, n_modes=4)
-    with pytest.raises(ValueError, match=r"`state_space\(residual=\.\.\.\)` must be a bool"):
-        fdjax.state_space(drive, 0.3, n_modes=4, residual=1)
+        fdjax.state_space(drive, np.nan, twin=fdjax.TwinOptions(kept_modes=4))
+    with pytest.raises(ValueError, match=r"`TwinOptions\(residual=\.\.\.\)` must be a bool"):
+        fdjax.TwinOptions(kept_modes=4, residual=1)
     with pytest.raises(ValueError, match=r"`count_modes\(n_positions=\.\.\.\)` must be an integer "
                                          r"at least 1, got 0"):
         fdjax.count_modes(drive, n_positions=0)
@@ -260,8 +260,8 @@ def test_drive_modes_under_jit(drive):
 
 
 def test_modal_data_under_jit():
-    f = jax.jit(lambda z: ModalData([50.0, 90.0], z, [-90.0, -120.0]).damping)
-    _raises(r"`ModalData\(damping=\.\.\.\)` must be finite and positive", f,
+    f = jax.jit(lambda z: ModalData([50.0, 90.0], z, [-90.0, -120.0]).damping_ratio)
+    _raises(r"`ModalData\(damping_ratio=\.\.\.\)` must be finite and positive", f,
             jnp.array([0.1, -0.05]))
     with pytest.raises(ValueError, match=r"`ModalData\(frequency_hz=\.\.\.\)` must be finite and "
                                          r"positive, got 0 at index 1"):

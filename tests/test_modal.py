@@ -95,7 +95,7 @@ def fits(table1):
 def test_table1_noisy_accuracy(fits, table1):
     _, fit = fits
     f_err = np.abs(np.asarray(fit.frequency_hz) / TABLE1[:, 0] - 1)
-    z_err = np.abs(np.asarray(fit.damping) / TABLE1[:, 1] - 1)
+    z_err = np.abs(np.asarray(fit.damping_ratio) / TABLE1[:, 1] - 1)
     p_err = phase_error(fit.phase_deg, TABLE1[:, 2])
     print("noisy Table 1: max rel. freq err", f_err.max(), "max rel. damping err",
           z_err.max(), "max phase err (deg)", p_err.max())
@@ -117,7 +117,7 @@ def test_table1_noisy_accuracy(fits, table1):
 def test_table1_clean_exact(fits, table1):
     fit, _ = fits
     np.testing.assert_allclose(fit.frequency_hz, TABLE1[:, 0], rtol=1e-9)
-    np.testing.assert_allclose(fit.damping, TABLE1[:, 1], rtol=1e-8)
+    np.testing.assert_allclose(fit.damping_ratio, TABLE1[:, 1], rtol=1e-8)
     assert np.all(phase_error(fit.phase_deg, TABLE1[:, 2]) < 1e-6)
     np.testing.assert_allclose(fit.poles, table1["lams"], rtol=1e-9)
     np.testing.assert_allclose(fit.residues, table1["res"], rtol=1e-7)
@@ -137,7 +137,7 @@ def test_warm_start(fits, table1):
     clean, noisy_fit = fits
     warm = identify_modes(FREQ, noisy(table1["h"], 0), 5, initial=clean)
     np.testing.assert_allclose(warm.frequency_hz, noisy_fit.frequency_hz, rtol=1e-9)
-    np.testing.assert_allclose(warm.damping, noisy_fit.damping, rtol=1e-7)
+    np.testing.assert_allclose(warm.damping_ratio, noisy_fit.damping_ratio, rtol=1e-7)
     np.testing.assert_allclose(warm.residues, noisy_fit.residues, rtol=1e-6)
 
 
@@ -148,10 +148,10 @@ def test_vector_fitting_stage_alone(fits, table1):
     vf = identify_modes(FREQ, table1["h"], 5, refine=False)
     assert int(vf.num_steps) == 0
     np.testing.assert_allclose(vf.frequency_hz, clean.frequency_hz, rtol=1e-9)
-    np.testing.assert_allclose(vf.damping, clean.damping, rtol=1e-8)
+    np.testing.assert_allclose(vf.damping_ratio, clean.damping_ratio, rtol=1e-8)
     vf = identify_modes(FREQ, noisy(table1["h"], 0), 5, refine=False)
     np.testing.assert_allclose(vf.frequency_hz, TABLE1[:, 0], rtol=5e-3)
-    np.testing.assert_allclose(vf.damping, TABLE1[:, 1], rtol=0.1)
+    np.testing.assert_allclose(vf.damping_ratio, TABLE1[:, 1], rtol=0.1)
 
 
 def three_mass_state_space():
@@ -192,7 +192,7 @@ def test_three_mass_oracle():
     assert fit.phase_deg.shape == (2, 3, 1) and fit.residues.shape == (2, 3, 1)
     np.testing.assert_allclose(wn / (2 * np.pi), [104, 155], rtol=0.02)  # DESIGN.md §2
     np.testing.assert_allclose(fit.frequency_hz, wn / (2 * np.pi), rtol=1e-9)
-    np.testing.assert_allclose(fit.damping, -lam.real / wn, rtol=1e-7)
+    np.testing.assert_allclose(fit.damping_ratio, -lam.real / wn, rtol=1e-7)
     np.testing.assert_allclose(fit.residues[..., 0], res, rtol=1e-7, atol=1e-12 * np.abs(res).max())
     assert np.all(phase_error(fit.phase_deg[..., 0], phase) < 1e-5)
     # Rigid body 1/(m_total s²) on every output; no 1/s term (undamped rigid motion).
@@ -283,7 +283,7 @@ def test_vmap_matches_loop_and_no_retrace(crossing):
     for k in (0, 4, 8):
         one = identify_modes(freq, hs[k], 2)
         np.testing.assert_allclose(out.frequency_hz[k], one.frequency_hz, rtol=1e-10)
-        np.testing.assert_allclose(out.damping[k], one.damping, rtol=1e-8)
+        np.testing.assert_allclose(out.damping_ratio[k], one.damping_ratio, rtol=1e-8)
         np.testing.assert_allclose(out.phase_deg[k], one.phase_deg, atol=1e-6)
         np.testing.assert_allclose(out.residues[k], one.residues, rtol=1e-8)
     _, hs_noisy, truth = crossing_family(noise_seed=5)
@@ -317,7 +317,8 @@ def test_track_modes_follows_shape_through_crossing(crossing):
         np.testing.assert_allclose(mac, 1.0, rtol=1e-8)
     # The other per-mode fields move with the modes; the rest is untouched.
     np.testing.assert_allclose(np.abs(tracked.poles) / (2 * np.pi), truth, rtol=1e-8)
-    np.testing.assert_allclose(tracked.damping, np.broadcast_to([0.02, 0.03], (9, 2)), rtol=1e-8)
+    np.testing.assert_allclose(tracked.damping_ratio, np.broadcast_to([0.02, 0.03], (9, 2)),
+                               rtol=1e-8)
     np.testing.assert_array_equal(tracked.rigid_body, fits.rigid_body)
     # Frequency alone (no shapes, no extrapolation) swaps the tracks at the crossing.
     naive = track_modes(fits, mac_tol=1e9, extrapolate=False)
@@ -330,7 +331,7 @@ def synthetic_fits(freq, residues):
     ch = residues.shape[2:]
     return ModalFit(
         frequency_hz=jnp.asarray(freq),
-        damping=jnp.full((p, n), 0.01),
+        damping_ratio=jnp.full((p, n), 0.01),
         phase_deg=jnp.zeros(residues.shape),
         residues=jnp.asarray(residues),
         poles=jnp.asarray(2 * np.pi * freq * (-0.01 + 1j)),

@@ -59,7 +59,7 @@ def test_fe_matrices_compiles_once_over_positions(drive, monkeypatch):
 def test_state_space_compiles_once_over_positions(drive, monkeypatch):
     _trace_once(monkeypatch, _twin, "_realise_jit", _twin._realise)
     for y in _values(POSITIONS):
-        fdjax.state_space(drive, y, n_modes=8)
+        fdjax.state_space(drive, y, twin=fdjax.TwinOptions(kept_modes=8))
 
 
 def test_drive_modes_compiles_once_over_positions(drive, monkeypatch):
@@ -77,12 +77,12 @@ def test_update_model_compiles_once_for_new_data(drive, monkeypatch):
     _trace_once(monkeypatch, _updating, "_update_jit", _updating._update)
     m = fdjax.drive_modes(drive, 0.2, n_modes=4)
     first = fdjax.update_model(
-        drive, fdjax.ModalData(m.frequency_hz[:3], m.damping[:3], m.phase_deg[:3]),
+        drive, fdjax.ModalData(m.frequency_hz[:3], m.damping_ratio[:3], m.phase_deg[:3]),
         {"nut.stiffness": (1e8, 2e9), "carriage.pitch_stiffness": (1e6, 1e8)}, 0.2,
         n_modes=4, max_steps=2,
     )
     second = fdjax.update_model(
-        drive, fdjax.ModalData(1.01 * m.frequency_hz[:3], 1.1 * m.damping[:3],
+        drive, fdjax.ModalData(1.01 * m.frequency_hz[:3], 1.1 * m.damping_ratio[:3],
                                m.phase_deg[:3] - 5.0),
         {"nut.stiffness": (2e8, 1.8e9), "carriage.pitch_stiffness": (2e6, 5e7)}, 0.35,
         n_modes=4, max_steps=2, tolerances=(0.02, 0.2, 10.0), visibility=0.1,

@@ -22,6 +22,7 @@ DT = 5.0e-5  # 20 kHz: τ = 250 µs is 5 samples
 SERVO = fdjax.Servo(period=DT, delay_samples=5)
 Y_END = 0.698  # near the screw end: the 2 mm stroke of `reference` stays inside the travel
 PADE6 = fdjax.Continuous(6)
+TWIN8 = fdjax.TwinOptions(kept_modes=8)  # a reduced twin (the moving table rebuilds it per step)
 
 
 @pytest.fixture(scope="module")
@@ -262,14 +263,14 @@ def test_instability_and_divergence_under_jit(drive, reference):
     """Under jit and vmap the pole check still works (growth rate of the transition matrix),
     and a run that leaves the error bound stops there with finite outputs."""
     hot = _hot_pid(drive, 1.5)
-    n_modes = fdjax.count_modes(drive)
+    twin = fdjax.TwinOptions(kept_modes=fdjax.count_modes(drive))
     pos = jnp.array([0.1, Y_END])
     stable = fdjax.check_stability(hot, drive, position_m=pos, servo=SERVO).stable
     soft = fdjax.PIDLoop()
     for method in (fdjax.SampledData(),):  # (PadeODE: same check, eager, test above)
         sims = jax.jit(jax.vmap(lambda p, m=method: fdjax.simulate(
             hot, drive, reference, m, servo=SERVO, position_m=p, duration=0.05,
-            n_modes=n_modes, throw=False)))(pos)
+            twin=twin, throw=False)))(pos)
         # the same verdict as the closed-loop poles of check_stability, position by position
         np.testing.assert_array_equal(sims.result == fdjax.RESULTS.unstable,
                                       ~np.asarray(stable))
@@ -280,7 +281,7 @@ def test_instability_and_divergence_under_jit(drive, reference):
         # a stable loop whose error leaves a (deliberately tiny) bound stops there
         sim = jax.jit(lambda d, m=method: fdjax.simulate(
             soft, d, reference, m, servo=SERVO, position_m=0.4, duration=0.05,
-            n_modes=n_modes, error_bound=1e-7, throw=False))(drive)
+            twin=twin, error_bound=1e-7, throw=False))(drive)
         assert sim.result == fdjax.RESULTS.diverged
         k = int(sim.failed_at)
         assert 0 < k < sim.t.shape[0]
@@ -289,16 +290,16 @@ def test_instability_and_divergence_under_jit(drive, reference):
         assert "diverged" in sim.message and "table position 0.4 m" in sim.message
     with pytest.raises(Exception, match="the closed loop is unstable"):
         jax.jit(lambda d: fdjax.simulate(hot, d, reference, servo=SERVO, position_m=Y_END,
-                                         duration=0.05, n_modes=n_modes))(drive)
+                                         duration=0.05, twin=twin))(drive)
     with pytest.raises(Exception, match="the closed-loop run diverged"):
         jax.jit(lambda d: fdjax.simulate(soft, d, reference, servo=SERVO, position_m=0.4,
-                                         duration=0.05, n_modes=n_modes,
+                                         duration=0.05, twin=twin,
                                          error_bound=1e-7))(drive)
 
 
 def test_gradients_match_central_differences(drive, mcm, reference):
     """d RMS(e2)/d(controller and plant parameters), sampled and ODE paths."""
-    n_modes = fdjax.count_modes(drive)
+    twin = fdjax.TwinOptions(kept_modes=fdjax.count_modes(drive))
 
     def rms(p, method):
         loop = fdjax.DoubleLoop(
@@ -308,7 +309,7 @@ def test_gradients_match_central_differences(drive, mcm, reference):
         )
         d = eqx.tree_at(lambda x: x.nut.stiffness, drive, p["k_nut"])
         sim = fdjax.simulate(loop, d, reference, method, servo=SERVO, position_m=POS,
-                             duration=0.05, n_modes=n_modes, throw=False)
+                             duration=0.05, twin=twin, throw=False)
         return sim.rms_error()
 
     p0 = dict(kp=jnp.asarray(40.0), kv=jnp.asarray(1e3), ki=jnp.asarray(60.0),
@@ -332,12 +333,12 @@ def test_gradients_match_central_differences(drive, mcm, reference):
 
 def test_vmap_over_positions_equals_loop(drive, reference):
     loop = fdjax.DoubleLoop()
-    n_modes = fdjax.count_modes(drive)
+    twin = fdjax.TwinOptions(kept_modes=fdjax.count_modes(drive))
     pos = jnp.array([0.115, 0.4, Y_END])
 
     def run(p):
         return fdjax.simulate(loop, drive, reference, servo=SERVO, position_m=p,
-                              duration=0.03, n_modes=n_modes, throw=False)
+                              duration=0.03, twin=twin, throw=False)
 
     batched = jax.vmap(run)(pos)
     for i, p in enumerate(pos):
@@ -347,7 +348,7 @@ def test_vmap_over_positions_equals_loop(drive, reference):
     # inside jit the default duration is read from a closed-over trajectory's knots
     short = jerk_limited(1e-4, 0.1, 2.0, 200.0)
     x2 = jax.jit(lambda p: fdjax.simulate(loop, drive, short, servo=SERVO, position_m=p,
-                                          n_modes=n_modes, throw=False).x2)(0.3)
+                                          twin=twin, throw=False).x2)(0.3)
     assert x2.shape == (round(float(short.duration) / DT) + 1,)
 
 
@@ -359,9 +360,9 @@ def test_moving_table(drive):
     force = jnp.where(jnp.arange(n) > 40, 100.0, 0.0)
     still = jerk_limited(1e-9, 0.1, 2.0, 200.0)
     moving = fdjax.simulate(loop, drive, still, fdjax.PadeODE(), servo=SERVO, position_m=0.4,
-                            duration=(n - 1) * DT, disturbance=force, moving=True, n_modes=8)
+                            duration=(n - 1) * DT, disturbance=force, moving=True, twin=TWIN8)
     frozen = fdjax.simulate(loop, drive, still, fdjax.PadeODE(), servo=SERVO, position_m=0.4,
-                            duration=(n - 1) * DT, disturbance=force, n_modes=8)
+                            duration=(n - 1) * DT, disturbance=force, twin=TWIN8)
     # frozen uses the twin with its static residual D, the moving basis has none: the truncated
     # modes' static flexibility from F3 to x3 is what separates them (measured 9e-10 relative)
     assert _rel(moving.x3, frozen.x3) < 5e-9
@@ -369,14 +370,14 @@ def test_moving_table(drive):
     fast = jerk_limited(0.02, 1.0, 20.0, 2.0e4)  # 20 mm at 20 m/s²: Y moves 1 mm in 10 ms
     dur = 0.01
     a = fdjax.simulate(loop, drive, fast, fdjax.PadeODE(), servo=SERVO, position_m=0.3,
-                       duration=dur, moving=True, n_modes=8)
+                       duration=dur, moving=True, twin=TWIN8)
     t = jnp.arange(round(dur / DT) + 1, dtype=jnp.float64) * DT
     b = fdjax.simulate(
         loop, drive, fast,
         fdjax.PadeODE(solver=diffrax.Kvaerno5(),
                       stepsize_controller=diffrax.ClipStepSizeController(
                           diffrax.PIDController(rtol=1e-9, atol=1e-13), step_ts=t)),
-        servo=SERVO, position_m=0.3, duration=dur, moving=True, n_modes=8,
+        servo=SERVO, position_m=0.3, duration=dur, moving=True, twin=TWIN8,
     )
     assert float(a.position_m[-1]) > 0.3 + 5e-4  # it did move
     assert _rel(a.error_scale, b.error_scale) < 1e-5
@@ -392,7 +393,7 @@ def test_moving_table_sampled(drive):
     n = 401
     force = jnp.where(jnp.arange(n) > 40, 100.0, 0.0)
     still = jerk_limited(1e-9, 0.1, 2.0, 200.0)
-    kw = dict(servo=SERVO, position_m=0.4, duration=(n - 1) * DT, disturbance=force, n_modes=8)
+    kw = dict(servo=SERVO, position_m=0.4, duration=(n - 1) * DT, disturbance=force, twin=TWIN8)
     moving = fdjax.simulate(loop, drive, still, moving=True, **kw)
     frozen = fdjax.simulate(loop, drive, still, **kw)
     assert moving.result == fdjax.RESULTS.successful
@@ -404,7 +405,7 @@ def test_moving_table_sampled(drive):
     methods = {"sampled": fdjax.SampledData(), "pade": fdjax.PadeODE()}
     runs = {
         (m, mv): fdjax.simulate(loop, drive, fast, methods[m], servo=SERVO, position_m=y0,
-                                duration=dur, moving=mv, n_modes=8)
+                                duration=dur, moving=mv, twin=TWIN8)
         for m in methods
         for mv in (True, False)
     }

@@ -27,6 +27,7 @@ import scipy.signal
 from fdjax._drive import reference_drive
 from fdjax._drive._twin import (
     DEFAULT_ELEMENTS,
+    TwinOptions,
     count_modes,
     fe_matrices,
     state_space,
@@ -117,7 +118,7 @@ def exact_natural_freqs(position, f_max=F_MAX) -> np.ndarray:
 
 def fe_natural_freqs(drive, position, n, **kw) -> np.ndarray:
     """All FE natural frequencies (Hz) from SciPy's generalised symmetric eigensolver."""
-    fe = fe_matrices(drive, position, n_elements=n, **kw)
+    fe = fe_matrices(drive, position, twin=TwinOptions(n_elements=n, **kw))
     lam = scipy.linalg.eigh(np.asarray(fe.stiffness), np.asarray(fe.mass), eigvals_only=True)
     return np.sqrt(np.maximum(lam, 0.0)) / (2 * np.pi)
 
@@ -195,7 +196,7 @@ def test_frf_converges():
     meshes = np.array([18, 54, 162])
     errors = []
     for n in meshes:
-        fe = fe_matrices(drive, 0.6, n_elements=int(n))
+        fe = fe_matrices(drive, 0.6, twin=TwinOptions(n_elements=int(n)))
         M, C, K, F, S = (np.asarray(x) for x in (
             fe.mass, fe.damping, fe.stiffness, fe.inputs, fe.outputs))
         H = np.stack([S @ np.linalg.solve(K + 1j * wk * C - wk**2 * M, F) for wk in w])
@@ -276,13 +277,13 @@ def test_realisation_is_exact_without_truncation_and_residual_is_static_flexibil
     drive = reference_drive()
     n, m = DEFAULT_ELEMENTS, count_modes(drive)
     N = 2 * n + 5
-    fe = fe_matrices(drive, 0.3, n_elements=n)
+    fe = fe_matrices(drive, 0.3, twin=TwinOptions(n_elements=n))
     M, C, K, F, S = (np.asarray(x) for x in (
         fe.mass, fe.damping, fe.stiffness, fe.inputs, fe.outputs))
     freq = np.array([5.0, 130.0, 700.0, 3000.0, 20000.0])
     H_fe = np.stack([S @ np.linalg.solve(K + 2j * np.pi * f * C - (2 * np.pi * f) ** 2 * M, F)
                      for f in freq])
-    full = state_space(drive, 0.3, n_modes=N)
+    full = state_space(drive, 0.3, twin=TwinOptions(kept_modes=N))
     # cond(iωI − A) ≲ 1e7 over these frequencies: ~1e-9 relative agreement
     assert normwise_error(np.asarray(full.frf(freq)), H_fe, drive).max() < 1e-8
     np.testing.assert_array_equal(np.asarray(full.D), 0.0)
@@ -333,7 +334,7 @@ def test_python_control_cross_check():
 def _loss(nut_stiffness, position, drive, n_modes):
     """A smooth scalar of the realisation: log-magnitudes of x3/F3 and x2/T1, off resonance."""
     drive = eqx.tree_at(lambda d: d.nut.stiffness, drive, nut_stiffness)
-    H = state_space(drive, position, n_modes=n_modes).frf(F_CHECK)
+    H = state_space(drive, position, twin=TwinOptions(kept_modes=n_modes)).frf(F_CHECK)
     return jnp.sum(jnp.log(jnp.abs(H[:, 2, 1]))) + jnp.sum(jnp.log(jnp.abs(H[:, 1, 0])))
 
 
@@ -366,7 +367,8 @@ def test_vmap_and_jit_over_positions():
     @eqx.filter_jit
     @eqx.debug.assert_max_traces(max_traces=1)
     def batch(ps):
-        return jax.vmap(lambda p: state_space(drive, p, n_modes=m).frf(freq))(ps)
+        twin = TwinOptions(kept_modes=m)
+        return jax.vmap(lambda p: state_space(drive, p, twin=twin).frf(freq))(ps)
 
     for ps in (jnp.array([0.12, 0.4, 0.66]), jnp.array([0.1, 0.33, 0.7])):
         looped = np.stack([np.asarray(state_space(drive, p).frf(freq)) for p in ps])
@@ -380,23 +382,27 @@ def test_bad_input():
         state_space(drive, 0.8)
     with pytest.raises(ValueError, match=r"`state_space\(position_m=\.\.\.\)` must be a scalar"):
         state_space(drive, [0.2, 0.3])
-    with pytest.raises(ValueError, match=r"`state_space\(n_elements=\.\.\.\)` must be an integer "
+    with pytest.raises(ValueError, match=r"`TwinOptions\(n_elements=\.\.\.\)` must be an integer "
                                          r"at least 1, got 0"):
-        state_space(drive, 0.3, n_elements=0)
-    with pytest.raises(ValueError, match=r"`fe_matrices\(n_elements=\.\.\.\)` must be an integer "
+        TwinOptions(n_elements=0)
+    with pytest.raises(ValueError, match=r"`TwinOptions\(n_elements=\.\.\.\)` must be an integer "
                                          r"at least 1, got 2\.5"):
-        fe_matrices(drive, 0.3, n_elements=2.5)
-    with pytest.raises(ValueError, match=r"`state_space\(n_modes=\.\.\.\)` must be in \[1, 29\]"):
-        state_space(drive, 0.3, n_modes=30)
+        TwinOptions(n_elements=2.5)
+    with pytest.raises(ValueError, match=r"`TwinOptions\(kept_modes=\.\.\.\)` must be an integer "
+                                         r"between 1 and 29, got 30"):
+        TwinOptions(kept_modes=30)
     with pytest.raises(ValueError, match=r"`count_modes\(band_hz=\.\.\.\)` must be finite and"):
         count_modes(drive, -1.0)
-    with pytest.raises(ValueError, match=r"`state_space\(band_hz=\.\.\.\)` must be finite and"):
-        state_space(drive, 0.3, band_hz=0.0)
+    with pytest.raises(ValueError, match=r"`TwinOptions\(band_hz=\.\.\.\)` must be finite and"):
+        TwinOptions(band_hz=0.0)
+    with pytest.raises(TypeError, match=r"`state_space\(twin=\.\.\.\)` must be a fdjax\.Twin"):
+        state_space(drive, 0.3, twin=12)
     lossy = eqx.tree_at(lambda d: d.screw.loss_factor, drive, 0.01)
     with pytest.raises(ValueError, match=r"`Screw\(loss_factor=\.\.\.\)` must be 0"):
         state_space(lossy, 0.3)
     # inside jit: the state size must be given, and range errors still name the argument
-    with pytest.raises(ValueError, match=r"cannot count modes inside `jax.jit`: pass `state_sp"):
+    with pytest.raises(ValueError, match=r"cannot count modes inside `jax.jit`: give the number "
+                                         r"of kept modes"):
         jax.jit(lambda p: state_space(drive, p).A)(0.3)
     jitted = jax.jit(lambda d, p: fe_matrices(d, p).stiffness)
     with pytest.raises(Exception, match=r"`fe_matrices\(position_m=\.\.\.\)` must be inside"):

@@ -34,6 +34,7 @@ from ._twin import (
     VELOCITY_OUTPUTS as VELOCITY_OUTPUTS,
     FEMatrices as FEMatrices,
     StateSpace as StateSpace,
+    TwinOptions as TwinOptions,
     count_modes as count_modes,
     fe_matrices as fe_matrices,
     state_space as state_space,

@@ -21,8 +21,9 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from .. import _checks
+from .._sweep import map_positions
 from ._model import INPUTS, OUTPUTS, BallScrewDrive
-from ._twin import DEFAULT_ELEMENTS, _assemble, _check_inputs, _check_time_domain
+from ._twin import TwinOptions, _assemble, _check_inputs, _check_time_domain, _twin_options
 
 __all__ = ["DriveModes", "drive_modes", "track_drive_modes"]
 
@@ -32,7 +33,7 @@ class DriveModes(eqx.Module):
 
     Attributes:
         frequency_hz: natural frequencies |λ_r|/2π (Hz).
-        damping: damping ratios −Re λ_r/|λ_r|.
+        damping_ratio: damping ratios −Re λ_r/|λ_r|.
         phase_deg: resonant phase of the entry, arg h_r(ω_r) in (−360°, 0].
         amplitude: |h_r(ω_r)|, the mode's peak contribution (units of the FRF entry).
         prominence: |h_r(ω_r)| / |h(ω_r)|, the mode's share of the whole entry at its own
@@ -43,7 +44,7 @@ class DriveModes(eqx.Module):
     """
 
     frequency_hz: Float[Array, "*b n"]
-    damping: Float[Array, "*b n"]
+    damping_ratio: Float[Array, "*b n"]
     phase_deg: Float[Array, "*b n"]
     amplitude: Float[Array, "*b n"]
     prominence: Float[Array, "*b n"]
@@ -96,7 +97,7 @@ def _modes_from_fe(fe, out: int, inp: int, n_keep: int) -> DriveModes:
     idx = jnp.argsort(wr)
     return DriveModes(
         frequency_hz=(wr / (2 * jnp.pi))[idx],
-        damping=(-jnp.real(lam) / wr)[idx],
+        damping_ratio=(-jnp.real(lam) / wr)[idx],
         phase_deg=_wrap_deg(jnp.degrees(jnp.angle(term)))[idx],
         amplitude=jnp.abs(term)[idx],
         prominence=(jnp.abs(term) / jnp.abs(total))[idx],
@@ -112,40 +113,43 @@ def drive_modes(
     output: str = "x2",
     input: str = "T1",
     n_modes: int = 12,
-    n_elements: int = DEFAULT_ELEMENTS,
+    twin: TwinOptions | None = None,
 ) -> DriveModes:
     """The lowest ``n_modes`` flexible modes of one FRF entry of the drive at a position.
 
-    Exact eigen-analysis of the finite-element twin (see the module docstring); the default
-    entry is h21 = x2/T1, the paper's Table 1 and Fig. 12.  Differentiable; a 1-D
-    ``position_m`` runs one compiled loop over the positions (returned with a leading axis).
+    Exact eigen-analysis of the finite-element twin (see the module docstring; its mesh and
+    nut correction from ``twin``, a :class:`fdjax.TwinOptions`, whose ``kept_modes`` and
+    ``residual`` do not enter: every mode of the mesh is analysed); the default entry is
+    h21 = x2/T1, the paper's Table 1 and Fig. 12.  Differentiable; a 1-D ``position_m`` runs
+    one compiled loop over the positions (returned with a leading axis).
     """
     fn = "drive_modes"
     out = _channel(output, OUTPUTS, fn, "output")
     inp = _channel(input, INPUTS, fn, "input")
-    n_el = _checks.static_int(n_elements, f"{fn}(n_elements=...)", 1)
+    twin = _twin_options(twin, fn)
+    n_el = int(twin.n_elements)
     # at most N − 1 oscillatory pole pairs for N = 2·n_elements + 5 DOFs (the rigid body
     # gives two real poles)
     n_keep = _checks.static_int(n_modes, f"{fn}(n_modes=...)", 1, 2 * n_el + 4)
     pos = _checks.real_array(position_m, f"{fn}(position_m=...)")
     if pos.ndim == 0:
         drive, pos = _check_inputs(drive, pos, fn)
-        return _modes_jit(drive, pos, out, inp, n_keep, n_el)
+        return _modes_jit(drive, pos, out, inp, n_keep, n_el, twin.nut_correction)
     if pos.ndim != 1:
         raise ValueError(f"`{fn}(position_m=...)` must be a scalar or 1-D, got {pos.shape}")
     drive = _check_time_domain(drive, fn)
     pos = drive._check_positions(pos, fn)
-    return _modes_batch_jit(drive, pos, out, inp, n_keep, n_el)
+    return _modes_batch_jit(drive, pos, out, inp, n_keep, n_el, twin.nut_correction)
 
 
-def _modes_at(drive, pos, out, inp, n_modes, n_elements):
-    return _modes_from_fe(_assemble(drive, pos, n_elements, True), out, inp, n_modes)
+def _modes_at(drive, pos, out, inp, n_modes, n_elements, nut_correction=True):
+    return _modes_from_fe(_assemble(drive, pos, n_elements, bool(nut_correction)), out, inp,
+                          n_modes)
 
 
-def _modes_batch(drive, pos, out, inp, n_modes, n_elements):
-    # lax.map, not vmap: a batched non-symmetric eig on the CPU has been seen to dead-lock
-    # (XLA:CPU, jax 0.10); one eig per position inside a compiled loop is as fast here.
-    return jax.lax.map(lambda p: _modes_at(drive, p, out, inp, n_modes, n_elements), pos)
+def _modes_batch(drive, pos, out, inp, n_modes, n_elements, nut_correction=True):
+    return map_positions(
+        lambda p: _modes_at(drive, p, out, inp, n_modes, n_elements, nut_correction), pos)
 
 
 # Positions reach these as arrays (a Python float would be static: one compile per value).

@@ -116,11 +116,39 @@ class Screw(eqx.Module):
         )
 
 
-class Rotary(eqx.Module):
+class _LineSubsystem(eqx.Module):
+    """A subsystem along the screw: a line of nodes with the nut point at 0 < l < L.
+
+    ``line(rod, l, ω)`` gives its tridiagonal dynamic stiffness (diagonal, off-diagonal) over
+    the nodes of the class docstring; ``receptance(rod, l, ω)`` the entries the coupling reads.
+    Both check l and ω and name the method called."""
+
+    def line(self, rod: Rod, l, omega):
+        """Tridiagonal dynamic stiffness over the subsystem's nodes, 0 < l < L (m)."""
+        name = type(self).__name__
+        l = _nut_point(rod, l, f"{name}.line(l=...)")
+        return self._line(rod, l, _omega(omega, f"{name}.line(omega=...)"))
+
+    def receptance(self, rod: Rod, l, omega):
+        """The receptances the coupling reads (see the class docstring)."""
+        name = type(self).__name__
+        l = _nut_point(rod, l, f"{name}.receptance(l=...)")
+        out = self._receptance(rod, l, _omega(omega, f"{name}.receptance(omega=...)"))
+        return _checks.finite_tree(out, f"{name}.receptance(...)")
+
+    def _line(self, rod: Rod, l, omega):
+        raise NotImplementedError
+
+    def _receptance(self, rod: Rod, l, omega):
+        raise NotImplementedError
+
+
+class Rotary(_LineSubsystem):
     """Subsystem R: motor rotor — coupling — screw in torsion, on rotational supports.
 
     Line of nodes: motor rotor θ1 | coupling | screw drive end θ(0) | screw | nut θ(l) | screw |
-    free end θ(L).
+    free end θ(L).  ``receptance(shaft, l, ω)`` gives (h_11, h_1l, h_ll): motor and nut-point
+    rotation per torque (rad/(N·m)).
 
     Attributes:
         motor_inertia: rotor inertia J_m incl. motor-side coupling hub (kg·m²).
@@ -152,17 +180,6 @@ class Rotary(eqx.Module):
         "Rotary(free_end_damping=...)", default=0.0
     )
 
-    def line(self, shaft: Rod, l, omega):
-        """Tridiagonal dynamic stiffness over (θ1, θ(0), θ(l), θ(L)), 0 < l < L (m)."""
-        l = _nut_point(shaft, l, "Rotary.line(l=...)")
-        return self._line(shaft, l, _omega(omega, "Rotary.line(omega=...)"))
-
-    def receptance(self, shaft: Rod, l, omega):
-        """(h_11, h_1l, h_ll): motor and nut-point rotation per torque (rad/(N·m))."""
-        l = _nut_point(shaft, l, "Rotary.receptance(l=...)")
-        out = self._receptance(shaft, l, _omega(omega, "Rotary.receptance(omega=...)"))
-        return _checks.finite_tree(out, "Rotary.receptance(...)")
-
     def _line(self, shaft: Rod, l, omega):
         diag, off = line_stiffness(
             shaft,
@@ -184,10 +201,12 @@ class Rotary(eqx.Module):
         return tuple(tridiagonal_receptance(diag, off, [(0, 0), (0, 2), (2, 2)]))
 
 
-class Axial(eqx.Module):
+class Axial(_LineSubsystem):
     """Subsystem A: the screw in axial motion on its thrust bearing(s).
 
     Line of nodes: drive end u(0) (thrust bearing) | screw | nut u(l) | screw | free end u(L).
+    ``receptance(rod, l, ω)`` gives h_ll: the screw's axial displacement at the nut per axial
+    force (m/N).
 
     Attributes:
         drive_end_stiffness, drive_end_damping: thrust bearing pair (N/m, N·s/m).
@@ -209,17 +228,6 @@ class Axial(eqx.Module):
     drive_end_mass: Float[Array, ""] = _checks.nonnegative_field(
         "Axial(drive_end_mass=...)", default=0.0
     )
-
-    def line(self, rod: Rod, l, omega):
-        """Tridiagonal dynamic stiffness over (u(0), u(l), u(L)), 0 < l < L (m)."""
-        l = _nut_point(rod, l, "Axial.line(l=...)")
-        return self._line(rod, l, _omega(omega, "Axial.line(omega=...)"))
-
-    def receptance(self, rod: Rod, l, omega):
-        """h_ll: axial displacement of the screw at the nut per axial force (m/N)."""
-        l = _nut_point(rod, l, "Axial.receptance(l=...)")
-        out = self._receptance(rod, l, _omega(omega, "Axial.receptance(omega=...)"))
-        return _checks.finite_output(out, "Axial.receptance(...)")
 
     def _line(self, rod: Rod, l, omega):
         return line_stiffness(

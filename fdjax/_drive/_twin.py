@@ -79,6 +79,7 @@ frequency of interest (the default band).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import equinox as eqx
@@ -93,6 +94,7 @@ from .._lti import transfer
 from ._model import INPUTS, OUTPUTS, BallScrewDrive
 
 __all__ = [
+    "TwinOptions",
     "FEMatrices",
     "StateSpace",
     "fe_matrices",
@@ -116,6 +118,66 @@ VELOCITY_OUTPUTS = ("theta1_dot", "x2_dot", "x3_dot")
 """Velocity outputs of a :class:`StateSpace`: motor speed (rad/s), scale and tool velocity (m/s)."""
 
 _TWO_PI = 2.0 * math.pi
+
+
+class TwinOptions(eqx.Module):
+    """How a drive becomes its time-domain twin: the mesh, the modes kept, the corrections.
+
+    Built once and passed as ``twin=`` to every function that realises the drive in time
+    (:func:`state_space`, :func:`fe_matrices`, :func:`count_modes`, :func:`fdjax.drive_modes`,
+    :func:`fdjax.update_model`, :func:`fdjax.simulate` and the loop analyses).  Every field is
+    static: it fixes array shapes, so a new value compiles anew, while positions and drive
+    parameters stay traced.
+
+    Attributes:
+        n_elements: screw elements n, uniform over the screw length (N = 2n + 5 DOFs).  The
+            default meets 0.5 % on every natural frequency below 2 kHz of the reference drive.
+        kept_modes: modes kept in the state space (rigid-body mode included; the state has
+            2·kept_modes entries), 1 ≤ kept_modes ≤ N.  ``None`` keeps the modes up to
+            ``band_hz`` (counted over the travel with :func:`count_modes`, which needs concrete
+            drive parameters: give it when the drive itself is traced).
+        band_hz: the band of kept modes when ``kept_modes`` is None.
+        residual: add the truncated modes' static flexibility as the feed-through D.
+        nut_correction: add the screw element's local compliance ξ(1−ξ)h/Z in series with the
+            nut joint, which makes the mesh convergence O(h²) at every position.
+    """
+
+    n_elements: int = eqx.field(static=True, default=DEFAULT_ELEMENTS)
+    kept_modes: int | None = eqx.field(static=True, default=None)
+    band_hz: float = eqx.field(static=True, default=DEFAULT_BAND_HZ)
+    residual: bool = eqx.field(static=True, default=True)
+    nut_correction: bool = eqx.field(static=True, default=True)
+
+    def __check_init__(self):
+        _checks.static_int(self.n_elements, "TwinOptions(n_elements=...)", 1)
+        if self.kept_modes is not None:
+            _checks.static_int(self.kept_modes, "TwinOptions(kept_modes=...)", 1,
+                               2 * int(self.n_elements) + 5)
+        band = _checks.concrete_float(self.band_hz, "TwinOptions(band_hz=...)")
+        _checks.positive(band, "TwinOptions(band_hz=...)")
+        _checks.static_bool(self.residual, "TwinOptions(residual=...)")
+        _checks.static_bool(self.nut_correction, "TwinOptions(nut_correction=...)")
+
+    def modes_for(self, drive: BallScrewDrive, fn: str = "state_space") -> int:
+        """The number of kept modes for ``drive``: ``kept_modes``, or the band's count."""
+        if self.kept_modes is not None:
+            return int(self.kept_modes)
+        return _count_modes(drive, self.band_hz, int(self.n_elements), 11,
+                            bool(self.nut_correction), fn)
+
+    def resolve(self, drive: BallScrewDrive, fn: str = "state_space") -> TwinOptions:
+        """The same options with ``kept_modes`` counted for ``drive`` (when it is None)."""
+        if self.kept_modes is not None:
+            return self
+        return dataclasses.replace(self, kept_modes=self.modes_for(drive, fn))
+
+
+def _twin_options(twin, fn: str) -> TwinOptions:
+    if twin is None:
+        return TwinOptions()
+    if not isinstance(twin, TwinOptions):
+        raise TypeError(f"`{fn}(twin=...)` must be a fdjax.TwinOptions, got {type(twin).__name__}")
+    return twin
 
 
 _cplx = _checks.to_complex
@@ -179,7 +241,7 @@ class StateSpace(eqx.Module):
     velocity_outputs: tuple[str, ...] = eqx.field(static=True, default=VELOCITY_OUTPUTS)
 
     @property
-    def n_modes(self) -> int:
+    def kept_modes(self) -> int:
         """Number of kept modes m (the state has 2m entries)."""
         return self.natural_freq_hz.shape[-1]
 
@@ -333,13 +395,6 @@ def _realise(drive, position_m, n: int, n_modes: int, residual: bool, nut_correc
     Phi = jsl.solve_triangular(L.T, Psi_m, lower=False)
     Xi = Phi.T @ fe.damping @ Phi
     Xi = 0.5 * (Xi + Xi.T)
-    Bq = Phi.T @ fe.inputs
-    Cq = fe.outputs @ Phi
-    zero, eye = jnp.zeros((m, m), jnp.float64), jnp.eye(m, dtype=jnp.float64)
-    A = jnp.block([[zero, eye], [-jnp.diag(lam_m), -Xi]])
-    B = jnp.concatenate([jnp.zeros_like(Bq), Bq], axis=0)
-    C = jnp.concatenate([Cq, jnp.zeros_like(Cq)], axis=1)
-    Cv = jnp.concatenate([jnp.zeros_like(Cq), Cq], axis=1)
     N = fe.mass.shape[0]
     if residual and m < N:
         # Residual flexibility Ψ_rΛ_r⁻¹Ψ_rᵀ of the truncated modes in mass-normalised
@@ -355,15 +410,23 @@ def _realise(drive, position_m, n: int, n_modes: int, residual: bool, nut_correc
         D = St.T @ G
     else:
         D = jnp.zeros((3, 2), jnp.float64)
+    return _second_order(jnp.diag(lam_m), Xi, Phi.T @ fe.inputs, fe.outputs @ Phi, D,
+                         _safe_sqrt(lam_m) / _TWO_PI, position_m, drive.screw.ratio)
+
+
+def _second_order(K, C, F, S, D, natural_freq_hz, position_m, screw_ratio) -> StateSpace:
+    """The state space of ``η̈ + C η̇ + K η = F u``, ``y = S η + D u`` (unit mass), x = (η, η̇)."""
+    m = K.shape[0]
+    zero, eye = jnp.zeros((m, m), jnp.float64), jnp.eye(m, dtype=jnp.float64)
     return StateSpace(
-        A=A,
-        B=B,
-        C=C,
+        A=jnp.block([[zero, eye], [-K, -C]]),
+        B=jnp.concatenate([jnp.zeros_like(F), F], axis=0),
+        C=jnp.concatenate([S, jnp.zeros_like(S)], axis=1),
         D=D,
-        C_velocity=Cv,
-        natural_freq_hz=_safe_sqrt(lam_m) / _TWO_PI,
+        C_velocity=jnp.concatenate([jnp.zeros_like(S), S], axis=1),
+        natural_freq_hz=natural_freq_hz,
         position_m=jnp.asarray(position_m, jnp.float64),
-        screw_ratio=jnp.asarray(drive.screw.ratio, jnp.float64),
+        screw_ratio=jnp.asarray(screw_ratio, jnp.float64),
     )
 
 
@@ -436,8 +499,7 @@ def fe_matrices(
     drive: BallScrewDrive,
     position_m: Float[ArrayLike, ""],
     *,
-    n_elements: int = DEFAULT_ELEMENTS,
-    nut_correction: bool = True,
+    twin: TwinOptions | None = None,
 ) -> FEMatrices:
     r"""The drive's finite-element matrices (M, C, K, F, S) at one table position.
 
@@ -447,46 +509,44 @@ def fe_matrices(
     Args:
         drive: the drive (its screw must have ``loss_factor = 0``).
         position_m: table position Y_table (m) inside ``drive.travel_m``, a scalar.
-        n_elements: screw elements n (static), uniform over the screw length.
-        nut_correction: add the element's local compliance ξ(1−ξ)h/Z in series with the nut
-            (static); makes the convergence O(h²) at every position.
+        twin: the mesh (``n_elements``) and ``nut_correction`` (:class:`TwinOptions`).
     """
-    n = _checks.static_int(n_elements, "fe_matrices(n_elements=...)", 1)
-    nut = _checks.static_bool(nut_correction, "fe_matrices(nut_correction=...)")
+    twin = _twin_options(twin, "fe_matrices")
     drive, pos = _check_inputs(drive, position_m, "fe_matrices")
-    return _assemble_jit(drive, pos, n, nut)
+    return _assemble_jit(drive, pos, int(twin.n_elements), bool(twin.nut_correction))
 
 
 def count_modes(
     drive: BallScrewDrive,
-    band_hz: float = DEFAULT_BAND_HZ,
+    band_hz: float | None = None,
     *,
-    n_elements: int = DEFAULT_ELEMENTS,
+    twin: TwinOptions | None = None,
     n_positions: int = 11,
-    nut_correction: bool = True,
 ) -> int:
     """Number of FE modes (rigid-body mode included) with natural frequency ≤ ``band_hz``.
 
     The largest count over ``n_positions`` table positions evenly spread over the travel, so
-    that one static ``n_modes`` serves every position (and ``jax.vmap`` over positions).
-    Needs concrete drive parameters (not inside ``grad``/``vmap`` over the drive).
+    that one static ``kept_modes`` serves every position (and ``jax.vmap`` over positions).
+    ``band_hz`` defaults to ``twin.band_hz``.  Needs concrete drive parameters (not inside
+    ``grad``/``vmap`` over the drive).
     """
     if not isinstance(drive, BallScrewDrive):
         raise ValueError(
             f"`count_modes(drive=...)` must be a BallScrewDrive, got {type(drive).__name__}"
         )
-    n = _checks.static_int(n_elements, "count_modes(n_elements=...)", 1)
+    twin = _twin_options(twin, "count_modes")
     n_positions = _checks.static_int(n_positions, "count_modes(n_positions=...)", 1)
-    nut = _checks.static_bool(nut_correction, "count_modes(nut_correction=...)")
-    return _count_modes(drive, band_hz, n, n_positions, nut, "count_modes")
+    band = twin.band_hz if band_hz is None else band_hz
+    return _count_modes(drive, band, int(twin.n_elements), n_positions,
+                        bool(twin.nut_correction), "count_modes")
 
 
 def _count_modes(drive, band_hz, n: int, n_positions: int, nut_correction: bool, fn: str) -> int:
     band = _checks.concrete_float(band_hz, f"{fn}(band_hz=...)")
     _checks.positive(band, f"{fn}(band_hz=...)")
     hint = (
-        "pass `state_space(n_modes=...)` (the state size is static), counted once outside "
-        "with `fdjax.count_modes(drive, band_hz)`"
+        "give the number of kept modes, `twin=fdjax.TwinOptions(kept_modes=...)` (the state "
+        "size is static), counted once outside with `fdjax.count_modes(drive)`"
     )
     if not _is_concrete_tree(drive):
         raise ValueError(
@@ -506,15 +566,11 @@ def state_space(
     drive: BallScrewDrive,
     position_m: Float[ArrayLike, ""],
     *,
-    n_elements: int = DEFAULT_ELEMENTS,
-    band_hz: float = DEFAULT_BAND_HZ,
-    n_modes: int | None = None,
-    residual: bool = True,
-    nut_correction: bool = True,
+    twin: TwinOptions | None = None,
 ) -> StateSpace:
     r"""State-space realisation of the drive at one table position (the time-domain twin).
 
-    The finite-element model of :func:`fe_matrices`, reduced to its lowest ``n_modes``
+    The finite-element model of :func:`fe_matrices`, reduced to its lowest ``kept_modes``
     undamped modes (rigid-body mode included) with the full modal damping matrix and, with
     ``residual=True``, the static residual flexibility of the truncated modes as D:
 
@@ -527,31 +583,15 @@ def state_space(
     Args:
         drive: the drive; its screw must have ``loss_factor = 0`` (use ``retardation``).
         position_m: table position Y_table (m) inside ``drive.travel_m``, a scalar.
-        n_elements: screw elements (static).  The default meets 0.5 % on every natural
-            frequency below 2 kHz of the reference drive.
-        band_hz: keep the modes up to this frequency; used only when ``n_modes`` is None,
-            through :func:`count_modes` (largest count over the travel, so the size does not
-            depend on the position; needs concrete drive parameters).
-        n_modes: number of kept modes (static, 1 ≤ n_modes ≤ 2·n_elements + 5); overrides
-            ``band_hz``.  Required when the drive itself is traced (grad over parameters).
-        residual: add the truncated modes' static flexibility as D (static).
-        nut_correction: see :func:`fe_matrices` (static).
+        twin: the mesh, the kept modes (by default those below 4 kHz over the travel) and the
+            corrections (:class:`TwinOptions`).  Give ``kept_modes`` when the drive itself is
+            traced (grad over its parameters).
 
     Returns:
-        A :class:`StateSpace` with 2·n_modes states.
+        A :class:`StateSpace` with 2·kept_modes states.
     """
-    n = _checks.static_int(n_elements, "state_space(n_elements=...)", 1)
-    residual = _checks.static_bool(residual, "state_space(residual=...)")
-    nut = _checks.static_bool(nut_correction, "state_space(nut_correction=...)")
+    twin = _twin_options(twin, "state_space")
     drive, pos = _check_inputs(drive, position_m, "state_space")
-    N = 2 * n + 5
-    if n_modes is None:
-        n_modes = _count_modes(drive, band_hz, n, 11, nut, "state_space")
-    elif isinstance(n_modes, bool) or not isinstance(n_modes, int | np.integer):
-        raise ValueError(f"`state_space(n_modes=...)` must be an int or None, got {n_modes!r}")
-    if not 1 <= n_modes <= N:
-        raise ValueError(
-            f"`state_space(n_modes=...)` must be in [1, {N}] (2·n_elements + 5 DOFs), "
-            f"got {n_modes}"
-        )
-    return _realise_jit(drive, pos, n, int(n_modes), residual, nut)
+    m = twin.modes_for(drive, "state_space")
+    return _realise_jit(drive, pos, int(twin.n_elements), m, bool(twin.residual),
+                        bool(twin.nut_correction))

@@ -27,7 +27,7 @@ from jaxtyping import Array, Float
 from .. import _checks
 from ._model import INPUTS, OUTPUTS, BallScrewDrive
 from ._modes import DriveModes, _channel, _modes_at, _wrap_deg
-from ._twin import DEFAULT_ELEMENTS, _check_inputs
+from ._twin import TwinOptions, _check_inputs, _twin_options
 
 __all__ = ["ModalData", "ModelUpdate", "update_model", "TABLE_1", "TABLE_1_POSITION_M"]
 
@@ -53,21 +53,22 @@ class ModalData(eqx.Module):
 
     frequency_hz: Float[Array, " n"] = _vector_field("ModalData(frequency_hz=...)",
                                                      _checks.positive)
-    damping: Float[Array, " n"] = _vector_field("ModalData(damping=...)", _checks.positive)
+    damping_ratio: Float[Array, " n"] = _vector_field("ModalData(damping_ratio=...)",
+                                                      _checks.positive)
     phase_deg: Float[Array, " n"] = _vector_field("ModalData(phase_deg=...)", _checks.finite)
 
     def __check_init__(self):
         n = self.frequency_hz.shape
-        if self.damping.shape != n or self.phase_deg.shape != n:
+        if self.damping_ratio.shape != n or self.phase_deg.shape != n:
             raise ValueError(
-                "`ModalData(frequency_hz=..., damping=..., phase_deg=...)` must have equal "
-                f"lengths, got {n[0]}, {self.damping.shape[0]}, {self.phase_deg.shape[0]}"
+                "`ModalData(frequency_hz=..., damping_ratio=..., phase_deg=...)` must have equal "
+                f"lengths, got {n[0]}, {self.damping_ratio.shape[0]}, {self.phase_deg.shape[0]}"
             )
 
 
 TABLE_1 = ModalData(
     frequency_hz=[49.0, 95.0, 130.0, 1030.0, 1529.0],
-    damping=[0.120, 0.170, 0.090, 0.003, 0.010],
+    damping_ratio=[0.120, 0.170, 0.090, 0.003, 0.010],
     phase_deg=[-135.0, -155.0, -260.0, -198.0, -31.0],
 )
 """The paper's Table 1: modes of h21 (x2/T1) identified at Y_table = 115 mm."""
@@ -118,7 +119,7 @@ def modal_errors(modes: DriveModes, target: ModalData) -> tuple[Array, Array, Ar
     resonant phase's difference wrapped to (−180°, 180°]."""
     return (
         modes.frequency_hz / target.frequency_hz - 1,
-        modes.damping / target.damping - 1,
+        modes.damping_ratio / target.damping_ratio - 1,
         _wrap_deg(modes.phase_deg - target.phase_deg, 180.0),
     )
 
@@ -170,6 +171,7 @@ class _Fit(eqx.Module):
     inp: int = eqx.field(static=True)
     n_modes: int = eqx.field(static=True)
     n_elements: int = eqx.field(static=True)
+    nut_correction: bool = eqx.field(static=True)
 
 
 class _FitData(eqx.Module):
@@ -195,7 +197,8 @@ def _build(u, data: _FitData) -> BallScrewDrive:
 
 def _model_modes(drive, data: _FitData) -> DriveModes:
     f = data.fit
-    return _modes_at(drive, data.position_m, f.out, f.inp, f.n_modes, f.n_elements)
+    return _modes_at(drive, data.position_m, f.out, f.inp, f.n_modes, f.n_elements,
+                     f.nut_correction)
 
 
 def _residuals(modes: DriveModes, target: ModalData, tolerances) -> Array:
@@ -203,7 +206,7 @@ def _residuals(modes: DriveModes, target: ModalData, tolerances) -> Array:
     tf, tz, tp = tolerances[0], tolerances[1], tolerances[2]
     return jnp.stack([
         jnp.log(modes.frequency_hz / target.frequency_hz) / tf,
-        jnp.log(modes.damping / target.damping) / tz,
+        jnp.log(modes.damping_ratio / target.damping_ratio) / tz,
         _wrap_deg(modes.phase_deg - target.phase_deg, 180.0) / tp,
     ])
 
@@ -241,7 +244,7 @@ def update_model(
     tolerances: tuple[float, float, float] = (0.03, 0.25, 15.0),
     visibility: float = 0.05,
     n_modes: int = 12,
-    n_elements: int = DEFAULT_ELEMENTS,
+    twin: TwinOptions | None = None,
     max_steps: int = 200,
     solver: optx.AbstractLeastSquaresSolver | None = None,
 ) -> ModelUpdate:
@@ -265,7 +268,7 @@ def update_model(
             its own natural frequency) is at least this (in [0, 1)): modes a measurement could
             not see are not matched.
         n_modes: model modes to pair from (static), at least the number of targets.
-        n_elements: screw elements of the twin (static).
+        twin: the twin's mesh and nut correction (:class:`fdjax.TwinOptions`).
         max_steps: Levenberg–Marquardt steps (static, ≥ 0; 0 only evaluates the residuals).
         solver: an optimistix least-squares solver (default Levenberg–Marquardt, rtol 1e-6).
 
@@ -318,7 +321,8 @@ def update_model(
         _checks.real_scalar(visibility, f"{fn}(visibility=...)"),
         lambda v: (v >= 0) & (v < 1), f"{fn}(visibility=...)", "in [0, 1)",
     )
-    n_el = _checks.static_int(n_elements, f"{fn}(n_elements=...)", 1)
+    twin = _twin_options(twin, fn)
+    n_el = int(twin.n_elements)
     n_targets = target.frequency_hz.shape[0]
     n_keep = _checks.static_int(n_modes, f"{fn}(n_modes=...)", n_targets, 2 * n_el + 4)
     max_steps = _checks.static_int(max_steps, f"{fn}(max_steps=...)", 0)
@@ -341,6 +345,7 @@ def update_model(
         inp=_channel(input, INPUTS, fn, "input"),
         n_modes=n_keep,
         n_elements=n_el,
+        nut_correction=bool(twin.nut_correction),
     )
     data = _FitData(
         drive=drive,

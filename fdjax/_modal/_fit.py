@@ -48,7 +48,7 @@ class ModalFit(eqx.Module):
     **Fields:**
 
     - ``frequency_hz``: natural frequencies :math:`|\lambda_r|/2\pi`, shape ``(n_modes,)``.
-    - ``damping``: damping ratios :math:`\zeta_r = -\mathrm{Re}\lambda_r/|\lambda_r|`.
+    - ``damping_ratio``: damping ratios :math:`\zeta_r = -\mathrm{Re}\lambda_r/|\lambda_r|`.
     - ``phase_deg``: resonant phase :math:`\arg T_r(\omega_r)` in degrees, in (-360, 0],
       per channel: shape ``(n_modes, *channel_shape)`` (``(n_modes,)`` for a SISO FRF).
     - ``residues``: complex residues :math:`R_{rk}` (units of H times rad/s), shape
@@ -66,7 +66,7 @@ class ModalFit(eqx.Module):
     """
 
     frequency_hz: Float[Array, "*batch mode"]
-    damping: Float[Array, "*batch mode"]
+    damping_ratio: Float[Array, "*batch mode"]
     phase_deg: Float[Array, "*batch mode *channel"]
     residues: Complex[Array, "*batch mode *channel"]
     poles: Complex[Array, "*batch mode"]

@@ -135,7 +135,7 @@ def _finish(s, h, w, h_scale, omega_ref, p0, solver, model: _Model, refine: bool
     ch = model.channel_shape
     return ModalFit(
         frequency_hz=wn / _TWO_PI,
-        damping=zeta,
+        damping_ratio=zeta,
         phase_deg=_wrap_phase_deg(term).reshape(n, *ch),
         residues=residues.reshape(n, *ch),
         poles=poles,

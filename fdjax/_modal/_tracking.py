@@ -108,7 +108,7 @@ def track_modes(
     their frequencies move smoothly (one channel, where MAC is always 1). The assignment is
     exact for up to 7 modes and greedy beyond.
 
-    Returns the same ``ModalFit`` with ``frequency_hz``, ``damping``, ``phase_deg``,
+    Returns the same ``ModalFit`` with ``frequency_hz``, ``damping_ratio``, ``phase_deg``,
     ``residues`` and ``poles`` permuted per position; other fields are unchanged.
     """
     if not isinstance(fits, ModalFit):
@@ -130,8 +130,8 @@ def track_modes(
         return jnp.take_along_axis(x, idx, axis=1)
 
     return eqx.tree_at(
-        lambda m: (m.frequency_hz, m.damping, m.phase_deg, m.residues, m.poles),
+        lambda m: (m.frequency_hz, m.damping_ratio, m.phase_deg, m.residues, m.poles),
         fits,
-        tuple(take(x) for x in (fits.frequency_hz, fits.damping, fits.phase_deg,
+        tuple(take(x) for x in (fits.frequency_hz, fits.damping_ratio, fits.phase_deg,
                                  fits.residues, fits.poles)),
     )

@@ -27,7 +27,7 @@ from .. import _checks
 from .._control._controllers import AbstractController
 from .._control._servo import Servo
 from .._drive._model import BallScrewDrive
-from .._drive._twin import DEFAULT_ELEMENTS, StateSpace, count_modes, state_space
+from .._drive._twin import StateSpace, TwinOptions, _twin_options, state_space
 from .._results import RESULTS
 from ._methods import AbstractLoopModel, SampledData
 from ._moving import MovingPlant
@@ -131,8 +131,7 @@ def simulate(
     duration: float | None = None,
     disturbance: Float[ArrayLike, " n"] | None = None,
     moving: bool = False,
-    n_modes: int | None = None,
-    n_elements: int = DEFAULT_ELEMENTS,
+    twin: TwinOptions | None = None,
     error_bound: float = 0.01,
     throw: bool = True,
 ) -> Simulation:
@@ -166,8 +165,8 @@ def simulate(
         duration: simulated time (s), static; default the reference's ``duration``.
         disturbance: force F3 at the tool point (N) on the output grid, (n,); default 0.
         moving: moving-table mode (a drive plant; slower: the loop is rebuilt every step).
-        n_modes: modes of the twin (static); default the 4 kHz band's count.
-        n_elements: screw elements of the twin (static).
+        twin: how a drive plant becomes its twin (:class:`fdjax.TwinOptions`: mesh, kept
+            modes, corrections); the moving table uses its mesh and kept modes.
         error_bound: a scale error |r − x2| beyond this (m) counts as divergence.
         throw: raise when the result is not ``successful`` (unstable, diverged, solver failed,
             out of travel) — eagerly naming the table position (and the growth rate, or the
@@ -213,14 +212,14 @@ def simulate(
     eb = _checks.positive(jnp.asarray(error_bound, jnp.float64), f"{fn}(error_bound=...)")
     dt = method.output_period(servo)
     n = int(round(duration / dt)) + 1
+    twin = _twin_options(twin, fn)
     if isinstance(plant, BallScrewDrive):
         if position_m is None:
             raise ValueError(f"`{fn}(position_m=...)` is required when the plant is a drive")
         pos0 = _checks.real_scalar(position_m, f"{fn}(position_m=...)")
         pos0 = plant._check_travel(pos0, fn)
         lo, hi = plant.travel_m
-        if n_modes is None:
-            n_modes = count_modes(plant, n_elements=n_elements)
+        twin = twin.resolve(plant, fn)
         travel = (float(lo), float(hi))
     elif isinstance(plant, StateSpace):
         if position_m is not None or moving:
@@ -245,7 +244,7 @@ def simulate(
             )
     sim = _simulate_jit(
         controller, plant, reference, method, servo, pos0, force, n, bool(moving),
-        None if n_modes is None else int(n_modes), int(n_elements), eb, travel,
+        twin, eb, travel,
     )
     if throw:
         failed = sim.result != RESULTS.successful
@@ -253,29 +252,27 @@ def simulate(
             if bool(np.any(np.asarray(failed))):
                 if bool(np.any(np.asarray(sim.result == RESULTS.out_of_travel))):
                     raise ValueError(f"`{fn}(reference=..., position_m=...)`: {sim.message}")
-                raise RuntimeError(_with_pole(sim, controller, plant, method, servo, pos0,
-                                              n_modes, n_elements))
+                raise RuntimeError(_with_pole(sim, controller, plant, method, servo, pos0, twin))
         else:
             sim = sim.result.error_if(sim, failed)
     return sim
 
 
-def _with_pole(sim, controller, plant, method, servo, pos0, n_modes, n_el) -> str:
+def _with_pole(sim, controller, plant, method, servo, pos0, twin) -> str:
     """The message, with the least stable pole's frequency for an unstable frozen loop (found
     on the host: a batched non-symmetric eig has dead-locked XLA:CPU)."""
     msg = sim.message
     if not bool(np.any(np.asarray(sim.result == RESULTS.unstable))) or np.ndim(sim.failed_at):
         return msg
-    twin = plant if pos0 is None else state_space(plant, pos0, n_modes=n_modes, n_elements=n_el)
-    A = np.asarray(method.closed_loop(controller, twin, servo).A)
+    model = plant if pos0 is None else state_space(plant, pos0, twin=twin)
+    A = np.asarray(method.closed_loop(controller, model, servo).A)
     lam = np.asarray(method.poles_to_s(jnp.asarray(np.linalg.eigvals(A)), servo))
     pole = lam[np.argmax(lam.real)]
     return msg.replace(": growing", f": pole at {abs(pole.imag) / (2 * np.pi):.4g} Hz growing")
 
 
 def _simulate_impl(
-    controller, plant, reference, method, servo, pos0, force, n, moving, n_modes, n_el, bound,
-    travel,
+    controller, plant, reference, method, servo, pos0, force, n, moving, twin, bound, travel,
 ):
     dt = method.output_period(servo)
     t = jnp.arange(n, dtype=jnp.float64) * dt
@@ -294,15 +291,15 @@ def _simulate_impl(
             outside = ~jnp.all(inside(pos) & inside(mid))
             # Clipped so that a run that is reported out of travel still builds valid models.
             clip = lambda y: jnp.clip(y, lo, hi)
-            moving_plant = MovingPlant.at_rest(plant, pos0, n_el, n_modes)
+            moving_plant = MovingPlant.at_rest(plant, pos0, twin, twin.kept_modes)
             Y, failed_at, result = method.run_moving(
                 controller, moving_plant, W, clip(pos), clip(mid), servo, bound
             )
             growth = None
         else:
             outside = ~jnp.all((pos >= lo) & (pos <= hi))
-            twin = state_space(plant, pos0, n_modes=n_modes, n_elements=n_el)
-            Y, failed_at, result, growth = method.run(controller, twin, W, servo, bound)
+            model = state_space(plant, pos0, twin=twin)
+            Y, failed_at, result, growth = method.run(controller, model, W, servo, bound)
     result = RESULTS.where(outside, RESULTS.out_of_travel, result)
     return Simulation(
         t=t,
