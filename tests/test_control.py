@@ -297,32 +297,34 @@ def test_one_compilation_for_new_positions(drive):
 
 # ---------------------------------------------------------------- failures under jit and vmap
 def test_failures_carry_their_message_under_jit_and_vmap(drive):
-    # the default PID (gain margin ≈ 9 over the travel) with every gain × 15: unstable
+    # the default PID (gain margin ≈ 9 over the travel) with every gain × 15: unstable.  Every
+    # run below uses a PID of the same structure and the same reference, so that each mode
+    # (eager, jit, vmap, moving) compiles once.
     hot = fdjax.PIDLoop(kp=15 * 1.5e3, ki=15 * 5.0e3, kd=15 * 100.0)
+    fine = fdjax.PIDLoop()
     ref = fdjax.reciprocating(stroke=2e-3, v_max=0.05, a_max=2.0, j_max=400.0, cycles=1)
-    sim = lambda c, p, r=ref, **kw: fdjax.simulate(c, drive, r, position_m=p, twin=TWIN6, **kw)
+    sim = lambda c, p, **kw: fdjax.simulate(c, drive, ref, position_m=p, twin=TWIN6, **kw)
     with pytest.raises(RuntimeError, match=r"closed loop unstable at table position 0.3 m: pole "
                                            r"at [0-9.]+ Hz growing at"):
         sim(hot, 0.3)
+    # a reference that leaves the travel (2 mm from 0.699 m): eager names the position reached
+    with pytest.raises(ValueError, match=r"from table position 0.699 m reaches 0.701 m, outside "
+                                         r"the travel \[0.1, 0.7\] m"):
+        sim(fine, 0.699)
+    jitted = jax.jit(lambda c, p: sim(c, p).x2)
     with pytest.raises(Exception, match="the closed loop is unstable"):
-        jax.block_until_ready(jax.jit(lambda p: sim(hot, p).x2)(0.3))
-    res = jax.vmap(lambda p: sim(hot, p, throw=False).result._value)(jnp.array([0.2, 0.3]))
-    assert np.all(np.asarray(res) == fdjax.RESULTS.unstable._value)
-    # a reference that leaves the travel: eager names the position reached, jit the check
-    far = fdjax.reciprocating(stroke=0.05, v_max=0.1, a_max=2.0, j_max=400.0, cycles=1)
-    with pytest.raises(ValueError, match=r"from table position 0.68 m reaches 0.73 m, outside the "
-                                         r"travel \[0.1, 0.7\] m"):
-        sim(fdjax.DoubleLoop(), 0.68, far)
+        jax.block_until_ready(jitted(hot, 0.3))
     with pytest.raises(Exception, match="the reference motion takes the table outside"):
-        jax.block_until_ready(jax.jit(lambda p: sim(fdjax.DoubleLoop(), p, far).x2)(0.68))
-    with pytest.raises(Exception, match="the reference motion takes the table outside"):
-        jax.block_until_ready(jax.jit(jax.vmap(
-            lambda p: fdjax.simulate(fdjax.DoubleLoop(), drive, far, position_m=p, twin=TWIN6,
-                                     moving=True).x2))(jnp.array([0.3, 0.68])))
+        jax.block_until_ready(jitted(fine, 0.699))
     # a start position outside the travel, under jit
     with pytest.raises(Exception,
                        match=r"`simulate\(position_m=\.\.\.\)` must be inside the travel"):
-        jax.block_until_ready(jax.jit(lambda p: sim(fdjax.DoubleLoop(), p).x2)(0.9))
+        jax.block_until_ready(jitted(fine, 0.9))
+    res = jax.vmap(lambda p: sim(hot, p, throw=False).result._value)(jnp.array([0.2, 0.3]))
+    assert np.all(np.asarray(res) == fdjax.RESULTS.unstable._value)
+    with pytest.raises(Exception, match="the reference motion takes the table outside"):
+        jax.block_until_ready(jax.jit(jax.vmap(
+            lambda p: sim(fine, p, moving=True).x2))(jnp.array([0.3, 0.699])))
     # check_stability with throw under jit
     with pytest.raises(Exception, match="the closed loop is unstable"):
         jax.block_until_ready(jax.jit(

@@ -288,13 +288,14 @@ def test_instability_and_divergence_under_jit(drive, reference):
         assert abs(float(sim.error_scale[k - 1])) <= 1e-7 < abs(float(sim.error_scale[k]))
         np.testing.assert_array_equal(sim.x2[k:], sim.x2[k - 1])  # frozen, finite
         assert "diverged" in sim.message and "table position 0.4 m" in sim.message
+    # with throw: one program for both failures (controller, position and bound as arguments)
+    run = jax.jit(lambda c, p, eb: fdjax.simulate(c, drive, reference, servo=SERVO,
+                                                  position_m=p, duration=0.05, twin=twin,
+                                                  error_bound=eb).x2)
     with pytest.raises(Exception, match="the closed loop is unstable"):
-        jax.jit(lambda d: fdjax.simulate(hot, d, reference, servo=SERVO, position_m=Y_END,
-                                         duration=0.05, twin=twin))(drive)
+        jax.block_until_ready(run(hot, Y_END, 0.01))
     with pytest.raises(Exception, match="the closed-loop run diverged"):
-        jax.jit(lambda d: fdjax.simulate(soft, d, reference, servo=SERVO, position_m=0.4,
-                                         duration=0.05, twin=twin,
-                                         error_bound=1e-7))(drive)
+        jax.block_until_ready(run(soft, 0.4, 1e-7))
 
 
 def test_gradients_match_central_differences(drive, mcm, reference):
@@ -414,8 +415,7 @@ def test_moving_table_sampled(drive):
     k = a.t.shape[0]
     t = np.arange(k) * DT
     r, r_mid = np.asarray(fast.evaluate(t)[0]), np.asarray(fast.evaluate(t + DT / 2)[0])
-    n_el = fdjax._drive._twin.DEFAULT_ELEMENTS
-    plant = MovingPlant.at_rest(drive, jnp.asarray(y0), n_el, 8)
+    plant = MovingPlant.at_rest(drive, jnp.asarray(y0), TWIN8, 8)
     at = eqx.filter_jit(lambda y: plant.at(y))
     plants = [(at(y0 + r[i]), at(y0 + r_mid[i])) for i in range(k)]
     _, W = _inputs(fast, k, DT)

@@ -160,6 +160,11 @@ def _jet(L_fn, params, v):
     return L, L1, L2
 
 
+def _jet1(L_fn, params, v):
+    """L(e^v) of every loop and its derivative in v = log ω (each shape (n_loops,))."""
+    return jax.jvp(lambda w: jnp.stack(L_fn(params, jnp.exp(w))), (v,), (jnp.ones_like(v),))
+
+
 def _criteria(L, L1, L2):
     """(f, df/dv) of the three crossing equations, stacked (3,): arg(−L) = 0 (phase
     crossover), log|L| = 0 (gain crossover), d|1 + L|²/dv / 2 = 0 (modulus margin)."""
@@ -208,27 +213,32 @@ def model_margins(u, Ls, L_fn, params) -> list[Margins]:
         f, df = _criteria(*(x[i] for x in _jet(L_fn, p, v)))
         return f[c], df[c]
 
-    # Unrolled on purpose: a lax while loop here can deadlock XLA:CPU's thunk executor on small
-    # thread pools; the grid start is O(Δu²) close, so a few quadratic steps reach round-off.
-    v, a, b = jnp.clip(u0, lo, hi), lo, hi
-    for _ in range(_NEWTON_STEPS):
+    # A fixed number of steps (the grid start is O(Δu²) close, so a few quadratic steps reach
+    # round-off), in a loop so that the jets of L are compiled once.
+    def newton(_, state):
+        v, a, b, _ = state
         fv, dfv = jax.vmap(lambda v, i, c: f_at(frozen, v, i, c))(v, loop_i, crit)
         left = jnp.sign(fv) == sign_lo  # the root lies in [v, b]
         a, b = jnp.where(left, v, a), jnp.where(left, b, v)
         step = v - fv / dfv
         inside = (step > a) & (step < b) & jnp.isfinite(step)
         v = jnp.where((fv == 0) | ~ok, v, jnp.where(inside, step, 0.5 * (a + b)))
-    v = jax.lax.stop_gradient(v)
+        return v, a, b, dfv
 
-    def final(v, i, c, ok):
-        L, L1, L2 = (x[i] for x in _jet(L_fn, params, v))
-        f, df = _criteria(L, L1, L2)
-        df = jax.lax.stop_gradient(df[c])
+    v0 = jnp.clip(u0, lo, hi)
+    v, _, _, df = jax.lax.fori_loop(0, _NEWTON_STEPS, newton, (v0, lo, hi, jnp.ones_like(v0)))
+    # f'(v) of the last step (at the previous iterate, converged quadratically: its error
+    # is far below what it scales, the final Newton correction and its sensitivity).
+    v, df = jax.lax.stop_gradient(v), jax.lax.stop_gradient(df)
+
+    def final(v, i, c, ok, df):
+        L, L1 = (x[i] for x in _jet1(L_fn, params, v))
+        f = _criteria(L, L1, jnp.zeros_like(L))[0]
         dv = jnp.where(ok & (df != 0), -f[c] / jnp.where(df != 0, df, 1.0), 0.0)
         score, value = _values(L + L1 * _c(dv))
         return v + dv, score[c], value[c]
 
-    v, score, value = jax.vmap(final)(v, loop_i, crit, ok)
+    v, score, value = jax.vmap(final)(v, loop_i, crit, ok, df)
     out = []
     for i in range(len(Ls)):
         per = []

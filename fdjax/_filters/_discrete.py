@@ -92,6 +92,15 @@ def _matched_denominator(den: Array, dt: Array) -> tuple[Array, Array]:
     return -2 * e * c, e * e
 
 
+def _solve3(A, B):
+    """A⁻¹B for a 3×3 A by Cramer's rule (the adjugate), a handful of array operations."""
+    c = jnp.stack([
+        jnp.cross(A[:, 1], A[:, 2]), jnp.cross(A[:, 2], A[:, 0]), jnp.cross(A[:, 0], A[:, 1])
+    ])  # rows: the adjugate's rows, adj(A) = c (so that c @ A = det I)
+    det = c[0] @ A[:, 0]
+    return (c @ B) / det
+
+
 @functools.partial(jax.jit, static_argnames="parallel")
 def _fitted_sections(
     num: Array, den: Array, w0: Array, dt: Array, parallel: bool
@@ -143,7 +152,7 @@ def _fitted_sections(
         b_dc, b_w0 = basis_k[-2], basis_k[-1]
         E = jnp.stack([jnp.real(b_dc), jnp.real(b_w0), jnp.imag(b_w0)])
         e = jnp.stack([jnp.real(H_k[-2]), jnp.real(H_k[-1]), jnp.imag(H_k[-1])])
-        G = jnp.linalg.solve(E[:, elim], jnp.concatenate([e[:, None], E[:, free]], axis=1))
+        G = _solve3(E[:, elim], jnp.concatenate([e[:, None], E[:, free]], axis=1))
         g0, G1 = G[:, 0], -G[:, 1:]  # c_elim = g0 + G1 c_free
         g0c, G1c, wc = to_complex(g0), to_complex(G1), to_complex(wt_k)[:, None]
         M = basis_k[:-2]
@@ -153,10 +162,18 @@ def _fitted_sections(
         yr = jnp.concatenate([jnp.real(y), jnp.imag(y)])
 
         def lstsq(sw):
-            # sw: square roots of the Lawson weights, one per complex row.
+            # sw: square roots of the Lawson weights, one per complex row.  Two unknowns: the
+            # normal equations in closed form (columns scaled to unit norm first).
             sw2 = jnp.concatenate([sw, sw])[:, None]
-            Q, R = jnp.linalg.qr(Mr * sw2)
-            return jax.scipy.linalg.solve_triangular(R, Q.T @ (yr * sw2[:, 0]))
+            X, b = Mr * sw2, yr * sw2[:, 0]
+            scale = jnp.sqrt(jnp.sum(X * X, 0))
+            scale = jnp.where(scale > 0, scale, 1.0)
+            X = X / scale
+            g11, g12, g22 = X[:, 0] @ X[:, 0], X[:, 0] @ X[:, 1], X[:, 1] @ X[:, 1]
+            r1, r2 = X[:, 0] @ b, X[:, 1] @ b
+            det = g11 * g22 - g12 * g12
+            det = jnp.where(det != 0, det, 1.0)
+            return jnp.stack([g22 * r1 - g12 * r2, g11 * r2 - g12 * r1]) / det / scale
 
         def safe_sqrt(v):  # √v with a finite gradient at 0 (rows off the band have v = 0)
             return jnp.where(v > 0, jnp.sqrt(jnp.where(v > 0, v, 1.0)), 0.0)
