@@ -52,7 +52,7 @@ def drive():
 
 @pytest.fixture(scope="module")
 def twin(drive):
-    return fdjax.state_space(drive, 0.4, n_modes=N_MODES)
+    return fdjax.state_space(drive, 0.4, twin=fdjax.TwinOptions(kept_modes=N_MODES))
 
 
 @pytest.fixture(scope="module")
@@ -369,7 +369,7 @@ def test_grid_margins_converge_at_second_order(twin):
 
 def test_vmap_over_positions_equals_loop(drive, frf):
     loop = LOOPS["double"]
-    twins = [fdjax.state_space(drive, p, n_modes=N_MODES) for p in POSITIONS[::3]]
+    twins = [fdjax.state_space(drive, p, twin=fdjax.TwinOptions(kept_modes=N_MODES)) for p in POSITIONS[::3]]
     batch = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *twins)
     mb = jax.vmap(lambda ss: fdjax.loop_margins(loop, ss, FREQ, method=CONT))(batch)
     for i, ss in enumerate(twins):

@@ -25,7 +25,8 @@ __all__ = ["Margins", "grid_margins", "model_margins"]
 
 _TWO_PI = 2.0 * math.pi
 _N_CANDIDATES = 3  # crossings refined per criterion (the best ones on the grid)
-_NEWTON_STEPS = 3  # safeguarded Newton from the grid estimate (then one step with gradients)
+_NEWTON_STEPS = 6  # safeguarded Newton (or bisection) steps from the grid estimate, in one loop;
+# then one step with gradients
 
 
 def _c(x) -> Array:
