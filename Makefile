@@ -18,8 +18,10 @@ install: $(STAMP)
 demo: $(STAMP)
 	$(VENV)/bin/fdjax reproduce --quick --out $(OUT)
 
+# Two processes (one per core of a 2-core machine), a test file per process at a time: the
+# files' tests share compiled programs.  `$(PY) -m pytest -q` runs the same tests in one.
 test: $(STAMP)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n 2 --dist loadfile
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .

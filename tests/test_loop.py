@@ -369,7 +369,8 @@ def test_grid_margins_converge_at_second_order(twin):
 
 def test_vmap_over_positions_equals_loop(drive, frf):
     loop = LOOPS["double"]
-    twins = [fdjax.state_space(drive, p, twin=fdjax.TwinOptions(kept_modes=N_MODES)) for p in POSITIONS[::3]]
+    opts = fdjax.TwinOptions(kept_modes=N_MODES)
+    twins = [fdjax.state_space(drive, p, twin=opts) for p in POSITIONS[::3]]
     batch = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *twins)
     mb = jax.vmap(lambda ss: fdjax.loop_margins(loop, ss, FREQ, method=CONT))(batch)
     for i, ss in enumerate(twins):
