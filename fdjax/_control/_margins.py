@@ -154,14 +154,7 @@ def grid_margins(u, L) -> Margins:
 
 def _jet(L_fn, params, v):
     """L(e^v) of every loop and its first two derivatives in v = log ω (each shape (n_loops,))."""
-
-    def Lv(w):
-        return jnp.stack(L_fn(params, jnp.exp(w)))
-
-    def first(w):
-        return jax.jvp(Lv, (w,), (jnp.ones_like(w),))
-
-    (L, L1), (_, L2) = jax.jvp(first, (v,), (jnp.ones_like(v),))
+    (L, L1), (_, L2) = jax.jvp(lambda w: _jet1(L_fn, params, w), (v,), (jnp.ones_like(v),))
     return L, L1, L2
 
 
@@ -170,15 +163,19 @@ def _jet1(L_fn, params, v):
     return jax.jvp(lambda w: jnp.stack(L_fn(params, jnp.exp(w))), (v,), (jnp.ones_like(v),))
 
 
+def _equations(L, L1):
+    """The three crossing equations, stacked (3,): arg(−L) = 0 (phase crossover), log|L| = 0
+    (gain crossover), d|1 + L|²/dv / 2 = 0 (modulus margin)."""
+    return jnp.stack([jnp.angle(-L), jnp.log(jnp.abs(L)), jnp.real((1.0 + L) * jnp.conj(L1))])
+
+
 def _criteria(L, L1, L2):
-    """(f, df/dv) of the three crossing equations, stacked (3,): arg(−L) = 0 (phase
-    crossover), log|L| = 0 (gain crossover), d|1 + L|²/dv / 2 = 0 (modulus margin)."""
+    """(f, df/dv) of the crossing equations (:func:`_equations`)."""
     r = L1 / L
-    f = jnp.stack([jnp.angle(-L), jnp.log(jnp.abs(L)), jnp.real((1.0 + L) * jnp.conj(L1))])
     df = jnp.stack([
         jnp.imag(r), jnp.real(r), jnp.abs(L1) ** 2 + jnp.real((1.0 + L) * jnp.conj(L2)),
     ])
-    return f, df
+    return _equations(L, L1), df
 
 
 def _values(L):
@@ -238,7 +235,7 @@ def model_margins(u, Ls, L_fn, params) -> list[Margins]:
 
     def final(v, i, c, ok, df):
         L, L1 = (x[i] for x in _jet1(L_fn, params, v))
-        f = _criteria(L, L1, jnp.zeros_like(L))[0]
+        f = _equations(L, L1)
         dv = jnp.where(ok & (df != 0), -f[c] / jnp.where(df != 0, df, 1.0), 0.0)
         score, value = _values(L + L1 * _c(dv))
         return v + dv, score[c], value[c]
