@@ -216,6 +216,13 @@ class AbstractFilter(eqx.Module):
         )
 
 
+    def to_sos(self, period: ArrayLike, method: str = "fitted") -> np.ndarray:
+        r"""The discrete filter a servo drive loads for period ``period`` (s): a cascade of
+        standard biquads, rows [b0, b1, b2, 1, a1, a2] in ``scipy.signal.sosfilt``'s convention
+        (a new, writable float64 NumPy array), equal to what the sampled loop runs:
+        ``self.discretize(period, method).to_sos()`` (see :meth:`DiscreteFilter.to_sos`)."""
+        return self.discretize(period, method).to_sos()
+
 class PeakFilter(AbstractFilter):
     r"""Peak filter(s), paper Eq. (3) (corrected, DESIGN.md §2):
 

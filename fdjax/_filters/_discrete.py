@@ -31,9 +31,18 @@ import math
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Complex, Float
 
-from .._checks import finite, finite_output, frequency_grid, positive, real_scalar, to_complex
+from .._checks import (
+    finite,
+    finite_output,
+    frequency_grid,
+    is_concrete,
+    positive,
+    real_scalar,
+    to_complex,
+)
 from .._lti import LTI, series
 from ._sections import _block_diag
 
@@ -242,6 +251,65 @@ def _sos_block_ss(sos: Array, dt: Array, direct=0.0) -> LTI:
     )
 
 
+# ---------------------------------------------------------------------------------------------
+# Export: a filter as a cascade of standard biquads (``DiscreteFilter.to_sos``), in NumPy: it is
+# what a drive loads, computed once from concrete values.
+
+
+def _quadratics(roots: np.ndarray) -> list[np.ndarray]:
+    """Real quadratic factors [1, −(r1 + r2), r1 r2] (in z⁻¹) of a real polynomial's roots:
+    complex roots with their conjugates, real roots in pairs (a single one as [1, −r, 0])."""
+    roots = np.asarray(roots, complex)
+    tol = 1e-9 * max(1.0, float(np.max(np.abs(roots)))) if roots.size else 0.0
+    upper = sorted((r for r in roots if r.imag > tol), key=lambda r: (abs(r), r.real))
+    real = sorted(r.real for r in roots if abs(r.imag) <= tol)
+    out = [np.array([1.0, -2 * r.real, abs(r) ** 2]) for r in upper]
+    for i in range(0, len(real) - 1, 2):
+        out.append(np.array([1.0, -(real[i] + real[i + 1]), real[i] * real[i + 1]]))
+    if len(real) % 2:
+        out.append(np.array([1.0, -real[-1], 0.0]))
+    return out
+
+
+def _sum_to_biquads(rows: np.ndarray, direct: float) -> list[np.ndarray]:
+    """``direct`` + Σ_k B_k/A_k (rows (k, 6), a0 = 1) as biquad rows [b0, b1, b2, 1, a1, a2]
+    whose cascade product is the same transfer function: over the common denominator Π A_k the
+    numerator is direct·Π A_k + Σ_k B_k Π_{j≠k} A_j; its roots, taken in conjugate pairs, are
+    paired with the sections' denominators (each with the zeros nearest its poles); zeros left
+    over go in sections with a unit denominator, the gain in the first."""
+    dens = [r[3:] for r in rows]
+    num = direct * np.array([1.0])
+    for a in dens:
+        num = np.polymul(num, a)
+    for k, r in enumerate(rows):
+        term = r[:3]
+        for j, a in enumerate(dens):
+            if j != k:
+                term = np.polymul(term, a)
+        num = np.polyadd(num, term) if num.size >= term.size else np.polyadd(term, num)
+    num = np.trim_zeros(np.asarray(num, float), "b")  # trailing zeros: zeros at z = 0 … none
+    poles = [a for a in dens if np.any(a[1:] != 0.0)]
+    if num.size == 0:
+        return [np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0])]
+    gain = num[0]
+    zeros = _quadratics(np.roots(num / gain)) if num.size > 1 else []
+    out = []
+    for a in poles:
+        if zeros:
+            p = np.roots(a)
+            dist = [float(np.min(np.abs(np.roots(z)[:, None] - p[None, :]))) for z in zeros]
+            b = zeros.pop(int(np.argmin(dist)))
+        else:
+            b = np.array([1.0, 0.0, 0.0])
+        out.append(np.concatenate([b, a]))
+    out += [np.concatenate([z, [1.0, 0.0, 0.0]]) for z in zeros]
+    if not out:
+        out = [np.array([1.0, 0.0, 0.0, 1.0, 0.0, 0.0])]
+    out[0] = out[0].copy()
+    out[0][:3] *= gain
+    return out
+
+
 class DiscreteFilter(eqx.Module):
     r"""A discrete filter of second-order sections: a parallel bank, then series stages,
 
@@ -302,6 +370,32 @@ class DiscreteFilter(eqx.Module):
         for q in range(self.series_sos.shape[0]):
             sys = series(sys, _sos_block_ss(self.series_sos[q], self.dt))
         return sys
+
+    def to_sos(self) -> np.ndarray:
+        r"""The filter as a cascade of standard biquads, the form a servo drive loads: a NumPy
+        array (n, 6) of rows [b0, b1, b2, 1, a1, a2] in ``scipy.signal.sosfilt``'s convention,
+
+            G(z) = Π_i (b0_i + b1_i z⁻¹ + b2_i z⁻²)/(1 + a1_i z⁻¹ + a2_i z⁻²),
+
+        the same transfer function as the sampled loop runs (``transfer``, ``step``).  The
+        parallel bank 1 + Σ_p P_p and each series stage Σ_k S_qk are brought over their common
+        denominator and the numerator factored into real quadratics, each paired with the
+        section poles nearest its zeros (a fitted notch stage becomes the notch biquad and an
+        FIR biquad).  Needs concrete values (not under ``jit``); a new, writable float64 array.
+        """
+        if not (is_concrete(self.parallel_sos) and is_concrete(self.series_sos)):
+            raise TypeError(
+                "`DiscreteFilter.to_sos()` needs concrete coefficients; call it outside "
+                "`jax.jit`/`vmap`/`grad`"
+            )
+        par = np.asarray(self.parallel_sos, np.float64)
+        ser = np.asarray(self.series_sos, np.float64)
+        rows = _sum_to_biquads(par, 1.0) if par.shape[0] else []
+        for q in range(ser.shape[0]):
+            rows += _sum_to_biquads(ser[q], 0.0)
+        if not rows:
+            rows = [np.array([1.0, 0.0, 0.0, 1.0, 0.0, 0.0])]
+        return np.array(rows, dtype=np.float64)
 
     def init_state(self) -> Float[Array, "sections 2"]:
         """The zero initial state, shape (n_sections, 2), parallel sections first."""
