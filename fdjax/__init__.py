@@ -133,6 +133,12 @@ _EXPORTS = {
         "simulate",
         "Simulation",
     ),
+    "._tune": (
+        "DoubleLoopParameterisation",
+        "GAIN_PARAMETERS",
+        "MCM_PARAMETERS",
+        "MCMBounds",
+    ),
     "._trajectory": (
         "concatenate",
         "jerk_limited",
@@ -274,4 +280,10 @@ if TYPE_CHECKING:
         concatenate as concatenate,
         jerk_limited as jerk_limited,
         reciprocating as reciprocating,
+    )
+    from ._tune import (
+        GAIN_PARAMETERS as GAIN_PARAMETERS,
+        MCM_PARAMETERS as MCM_PARAMETERS,
+        DoubleLoopParameterisation as DoubleLoopParameterisation,
+        MCMBounds as MCMBounds,
     )

@@ -1,0 +1,281 @@
+r"""A parameterisation of the double loop that gradient steps cannot break.
+
+A tuner (or the scheduling network) works on a vector θ of unconstrained reals of order one; the
+controller is built from θ through maps whose image is the admissible set, so no step of any
+size can leave it:
+
+* gains by logarithms about a reference value: k = k_ref e^{θ} (k_p, k_v, k_i); the
+  feed-forward gains, free reals, in units of their reference: k_ff = k_ff,ref θ;
+* each filter frequency, damping and gain inside a box, logarithmically:
+  x = x_lo (x_hi/x_lo)^{σ(θ)}, σ the logistic function, with every frequency below a fraction
+  of the Nyquist frequency π/T of the servo (the discretisation needs ω T < π);
+* the peak filter's phase inside (−φ_max, φ_max): φ = φ_max tanh θ;
+* the notch depth ζ_n/ζ_d inside (d_min, 1) by construction: ζ_n = ζ_d d_min^{σ(θ)}, so the
+  notch can never turn into a lead element (ζ_n > ζ_d).
+
+The seven filter parameters (paper Sec. 4.2: the peak filter's K, ω, ξ, φ on mode 3 and the
+notch's ω, ζ_n, ζ_d on mode 5) in this normalised form are what the scheduling network outputs.
+The hardware (servo period, delay, motor constant) is not part of θ.
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float
+
+from .._checks import concrete_float, fmt, is_concrete
+from .._control import DoubleLoop
+from .._control._servo import Servo
+from .._filters import MCM, NotchFilter, PeakFilter
+
+__all__ = ["MCM_PARAMETERS", "GAIN_PARAMETERS", "MCMBounds", "DoubleLoopParameterisation"]
+
+MCM_PARAMETERS = ("peak_K", "peak_omega", "peak_xi", "peak_phi",
+                  "notch_omega", "notch_zeta_d", "notch_depth")
+"""The seven normalised filter parameters, in the order of θ (notch_depth = ζ_n/ζ_d)."""
+
+GAIN_PARAMETERS = ("kp", "kv", "ki", "k_ffv", "k_ffa")
+"""The five normalised gains of a :class:`fdjax.DoubleLoop`, in the order of θ."""
+
+_TWO_PI = 2.0 * math.pi
+
+
+def _pair(value, where: str) -> tuple[float, float]:
+    try:
+        lo, hi = (float(v) for v in value)
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"`{where}` must be a (low, high) pair of numbers, got {value!r}"
+        ) from None
+    if not (0.0 < lo < hi < math.inf):
+        raise ValueError(
+            f"`{where}` must satisfy 0 < low < high < inf, got ({lo:.6g}, {hi:.6g})"
+        )
+    return lo, hi
+
+
+def _box(theta: Array, lo: float, hi: float) -> Array:
+    """lo (hi/lo)^{σ(θ)}: inside (lo, hi) for every real θ (clipped to [lo, hi] against the
+    round-off of a saturated σ, where the gradient vanishes anyway)."""
+    return jnp.clip(lo * jnp.exp(math.log(hi / lo) * jax.nn.sigmoid(theta)), lo, hi)
+
+
+def _unbox(x: Array, lo: float, hi: float, name: str, where: str, *,
+           inverted: bool = False) -> Array:
+    """The inverse of ``_box``, logit(log(x/lo)/log(hi/lo)); with ``inverted`` the inverse of
+    x = lo^{σ(θ)} on (lo, 1) (the notch depth), logit(log x/log lo)."""
+    if is_concrete(x):
+        v = np.asarray(x)
+        if not np.all((v > lo) & (v < hi)):
+            raise ValueError(
+                f"`{where}`: {name} must lie strictly inside ({lo:.6g}, {hi:.6g}), got {fmt(v)}"
+            )
+    u = jnp.log(x) / math.log(lo) if inverted else jnp.log(x / lo) / math.log(hi / lo)
+    return jnp.log(u) - jnp.log1p(-u)
+
+
+class MCMBounds(eqx.Module):
+    r"""The admissible set of an MCM with one peak and one notch filter, and the maps between
+    its seven normalised parameters θ ∈ ℝ⁷ (:data:`fdjax.MCM_PARAMETERS`) and the filter:
+
+        K = K_lo (K_hi/K_lo)^{σ(θ₀)},    ω_pf = ω_lo (ω_hi/ω_lo)^{σ(θ₁)},
+        ξ = ξ_lo (ξ_hi/ξ_lo)^{σ(θ₂)},    φ = φ_max tanh θ₃,
+        ω_nf = ω_lo (ω_hi/ω_lo)^{σ(θ₄)}, ζ_d = ζ_lo (ζ_hi/ζ_lo)^{σ(θ₅)},  ζ_n = ζ_d d_min^{σ(θ₆)},
+
+    with ω_hi = ``nyquist_fraction`` · π/T below the Nyquist frequency of the servo period T
+    (paper Eqs. (3)–(4) for the filters).  Every θ gives a filter the sampled loop can run
+    (``discretize`` needs ω T < π) and a notch of depth ζ_n/ζ_d < 1.
+
+    Attributes (static numbers; build with ``MCMBounds.for_servo(servo)`` or directly):
+        period: servo period T (s).
+        freq_hz: (low, high) bound of both filter frequencies (Hz); high ≤ ``nyquist_fraction``
+            of the Nyquist frequency.
+        peak_gain: (low, high) of K (> 0).
+        peak_damping: (low, high) of ξ.
+        peak_phase_max: φ_max (rad), in (0, π].
+        notch_damping: (low, high) of ζ_d.
+        notch_depth_min: d_min, the deepest notch ζ_n/ζ_d, in (0, 1).
+    """
+
+    period: float = eqx.field(static=True)
+    freq_hz: tuple[float, float] = eqx.field(static=True, default=(10.0, 3600.0))
+    peak_gain: tuple[float, float] = eqx.field(static=True, default=(1e-3, 10.0))
+    peak_damping: tuple[float, float] = eqx.field(static=True, default=(0.02, 1.0))
+    peak_phase_max: float = eqx.field(static=True, default=math.pi)
+    notch_damping: tuple[float, float] = eqx.field(static=True, default=(0.01, 2.0))
+    notch_depth_min: float = eqx.field(static=True, default=1e-3)
+
+    def __check_init__(self):
+        T = concrete_float(self.period, "MCMBounds(period=...)")
+        if not (0.0 < T < 1.0):
+            raise ValueError(f"`MCMBounds(period=...)` must be in (0, 1) s, got {T:.6g}")
+        lo, hi = _pair(self.freq_hz, "MCMBounds(freq_hz=...)")
+        nyquist = 0.5 / T
+        if hi >= nyquist:
+            raise ValueError(
+                f"`MCMBounds(freq_hz=...)` must stay below the Nyquist frequency "
+                f"{nyquist:.6g} Hz of the period {T:.6g} s, got high = {hi:.6g} Hz"
+            )
+        _pair(self.peak_gain, "MCMBounds(peak_gain=...)")
+        _pair(self.peak_damping, "MCMBounds(peak_damping=...)")
+        _pair(self.notch_damping, "MCMBounds(notch_damping=...)")
+        if not (0.0 < float(self.peak_phase_max) <= math.pi):
+            raise ValueError(
+                f"`MCMBounds(peak_phase_max=...)` must be in (0, π] rad, got "
+                f"{float(self.peak_phase_max):.6g}"
+            )
+        if not (0.0 < float(self.notch_depth_min) < 1.0):
+            raise ValueError(
+                f"`MCMBounds(notch_depth_min=...)` must be in (0, 1), got "
+                f"{float(self.notch_depth_min):.6g}"
+            )
+
+    @classmethod
+    def for_servo(cls, servo: Servo, *, nyquist_fraction: float = 0.9,
+                  freq_min_hz: float = 10.0, **kwargs) -> MCMBounds:
+        """Bounds for a servo: filter frequencies from ``freq_min_hz`` up to
+        ``nyquist_fraction`` of its Nyquist frequency; other bounds as the defaults or
+        ``kwargs``."""
+        if not isinstance(servo, Servo):
+            raise TypeError(
+                f"`MCMBounds.for_servo(servo=...)` must be an fdjax.Servo, got "
+                f"{type(servo).__name__}"
+            )
+        if not (0.0 < nyquist_fraction < 1.0):
+            raise ValueError(
+                f"`MCMBounds.for_servo(nyquist_fraction=...)` must be in (0, 1), got "
+                f"{nyquist_fraction!r}"
+            )
+        hi = nyquist_fraction * 0.5 / float(servo.period)
+        return cls(period=float(servo.period), freq_hz=(freq_min_hz, hi), **kwargs)
+
+    @property
+    def _omega(self) -> tuple[float, float]:
+        return _TWO_PI * self.freq_hz[0], _TWO_PI * self.freq_hz[1]
+
+    def to_mcm(self, theta: Float[ArrayLike, " 7"]) -> MCM:
+        """The MCM of the normalised parameters θ (class docstring); differentiable, and any
+        real θ gives an admissible filter."""
+        th = jnp.asarray(theta, jnp.float64)
+        if th.shape[-1:] != (7,) or th.ndim != 1:
+            raise ValueError(f"`MCMBounds.to_mcm(theta=...)` must have shape (7,), got {th.shape}")
+        w_lo, w_hi = self._omega
+        zeta_d = _box(th[5], *self.notch_damping)
+        peak = PeakFilter(
+            _box(th[0], *self.peak_gain),
+            _box(th[1], w_lo, w_hi),
+            _box(th[2], *self.peak_damping),
+            self.peak_phase_max * jnp.tanh(th[3]),
+        )
+        notch = NotchFilter(
+            _box(th[4], w_lo, w_hi),
+            zeta_d * jnp.exp(math.log(self.notch_depth_min) * jax.nn.sigmoid(th[6])),
+            zeta_d,
+        )
+        return MCM(peak, notch)
+
+    def from_mcm(self, mcm: MCM) -> Float[Array, " 7"]:
+        """θ of an MCM with one peak and one notch filter inside the bounds (the inverse of
+        :meth:`to_mcm`); a parameter outside them is a ``ValueError`` naming it."""
+        where = "MCMBounds.from_mcm(mcm=...)"
+        if not isinstance(mcm, MCM) or mcm.peak is None or mcm.notch is None:
+            raise TypeError(f"`{where}` must be an fdjax.MCM with a peak and a notch filter")
+        pk, nt = mcm.peak, mcm.notch
+        if pk.K.shape != (1,) or nt.omega.shape != (1,):
+            raise ValueError(
+                f"`{where}` must hold one peak and one notch filter, got {pk.K.shape[0]} "
+                f"and {nt.omega.shape[0]}"
+            )
+        w_lo, w_hi = self._omega
+        phi = pk.phi[0]
+        if is_concrete(phi) and not abs(float(phi)) < self.peak_phase_max:
+            raise ValueError(
+                f"`{where}`: the peak phase must lie inside (−{self.peak_phase_max:.6g}, "
+                f"{self.peak_phase_max:.6g}) rad, got {float(phi):.6g}"
+            )
+        depth = nt.zeta_n[0] / nt.zeta_d[0]
+        return jnp.stack([
+            _unbox(pk.K[0], *self.peak_gain, "the peak gain K", where),
+            _unbox(pk.omega[0], w_lo, w_hi, "the peak frequency ω (rad/s)", where),
+            _unbox(pk.xi[0], *self.peak_damping, "the peak damping ξ", where),
+            jnp.arctanh(phi / self.peak_phase_max),
+            _unbox(nt.omega[0], w_lo, w_hi, "the notch frequency ω (rad/s)", where),
+            _unbox(nt.zeta_d[0], *self.notch_damping, "the notch damping ζ_d", where),
+            _unbox(depth, self.notch_depth_min, 1.0, "the notch depth ζ_n/ζ_d", where,
+                   inverted=True),
+        ])
+
+
+class DoubleLoopParameterisation(eqx.Module):
+    r"""θ ∈ ℝ¹² ↔ a :class:`fdjax.DoubleLoop` with an MCM (one peak, one notch):
+
+        k_p = k_p,ref e^{θ₀},  k_v = k_v,ref e^{θ₁},  k_i = k_i,ref e^{θ₂},
+        k_ffv = k_ffv,ref θ₃,  k_ffa = k_ffa,ref θ₄,  MCM = ``mcm.to_mcm(θ₅…θ₁₁)``,
+
+    so that θ = (0, 0, 0, 1, 1, …) is the reference gains, every entry is of order one and every
+    θ gives an admissible controller (:class:`MCMBounds`).  The reference values are static
+    numbers (the scales of the problem), not tunable leaves.
+    """
+
+    mcm: MCMBounds
+    reference: tuple[float, float, float, float, float] = eqx.field(static=True)
+
+    def __init__(self, mcm: MCMBounds, reference: DoubleLoop | None = None):
+        if not isinstance(mcm, MCMBounds):
+            raise TypeError(
+                f"`DoubleLoopParameterisation(mcm=...)` must be an fdjax.MCMBounds, got "
+                f"{type(mcm).__name__}"
+            )
+        ref = DoubleLoop() if reference is None else reference
+        if not isinstance(ref, DoubleLoop):
+            raise TypeError(
+                f"`DoubleLoopParameterisation(reference=...)` must be an fdjax.DoubleLoop, got "
+                f"{type(ref).__name__}"
+            )
+        vals = [ref.kp, ref.kv, ref.ki, ref.k_ffv, ref.k_ffa]
+        if not all(is_concrete(v) for v in vals):
+            raise TypeError("`DoubleLoopParameterisation(reference=...)` needs concrete gains")
+        scales = tuple(float(v) for v in vals)
+        for name, v in zip(GAIN_PARAMETERS[3:], scales[3:]):
+            if v == 0.0 or not math.isfinite(v):
+                raise ValueError(
+                    f"`DoubleLoopParameterisation(reference=...)`: {name} sets the scale of its "
+                    f"parameter and must be finite and nonzero, got {v:.6g}"
+                )
+        self.mcm = mcm
+        self.reference = scales
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """Names of θ's entries."""
+        return GAIN_PARAMETERS + MCM_PARAMETERS
+
+    def to_controller(self, theta: Float[ArrayLike, " 12"]) -> DoubleLoop:
+        """The double loop of θ (class docstring)."""
+        th = jnp.asarray(theta, jnp.float64)
+        if th.shape != (12,):
+            raise ValueError(
+                f"`DoubleLoopParameterisation.to_controller(theta=...)` must have shape (12,), "
+                f"got {th.shape}"
+            )
+        kp, kv, ki, ffv, ffa = self.reference
+        return DoubleLoop(kp * jnp.exp(th[0]), kv * jnp.exp(th[1]), ki * jnp.exp(th[2]),
+                          k_ffv=ffv * th[3], k_ffa=ffa * th[4], mcm=self.mcm.to_mcm(th[5:]))
+
+    def from_controller(self, loop: DoubleLoop) -> Float[Array, " 12"]:
+        """θ of a double loop whose MCM lies inside the bounds (inverse of
+        :meth:`to_controller`)."""
+        if not isinstance(loop, DoubleLoop):
+            raise TypeError(
+                f"`DoubleLoopParameterisation.from_controller(loop=...)` must be an "
+                f"fdjax.DoubleLoop, got {type(loop).__name__}"
+            )
+        kp, kv, ki, ffv, ffa = self.reference
+        gains = jnp.stack([loop.log_kp - math.log(kp), loop.log_kv - math.log(kv),
+                           loop.log_ki - math.log(ki), loop.k_ffv / ffv, loop.k_ffa / ffa])
+        return jnp.concatenate([gains, self.mcm.from_mcm(loop.mcm)])

@@ -1,0 +1,114 @@
+"""The parameterisation of gradient synthesis: every θ gives an admissible controller."""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+
+import fdjax
+
+T = 1.25e-4
+BOUNDS = fdjax.MCMBounds.for_servo(fdjax.Servo())
+
+
+def _physical(mcm):
+    pk, nt = mcm.peak.params(), mcm.notch.params()
+    return {k: float(v[0]) for k, v in {**{"peak_" + k: v for k, v in pk.items()},
+                                         **{"notch_" + k: v for k, v in nt.items()}}.items()}
+
+
+def _inside(x, lo, hi):
+    # the filters store log ω, log ξ, log ζ: exp(log x) returns x to a few ulps
+    return lo * (1 - 1e-14) <= x <= hi * (1 + 1e-14)
+
+
+def _admissible(mcm, b=BOUNDS):
+    p = _physical(mcm)
+    w_lo, w_hi = 2 * math.pi * b.freq_hz[0], 2 * math.pi * b.freq_hz[1]
+    assert _inside(p["peak_omega"], w_lo, w_hi) and _inside(p["notch_omega"], w_lo, w_hi)
+    assert p["notch_omega"] * T < math.pi and p["peak_omega"] * T < math.pi
+    assert _inside(p["peak_K"], *b.peak_gain)
+    assert _inside(p["peak_xi"], *b.peak_damping)
+    assert abs(p["peak_phi"]) <= b.peak_phase_max
+    assert _inside(p["notch_zeta_d"], *b.notch_damping)
+    # ζ_n/ζ_d < 1 (it reaches 1, the identity, only where the logistic function saturates)
+    assert _inside(p["notch_zeta_n"] / p["notch_zeta_d"], b.notch_depth_min, 1.0)
+
+
+def test_round_trip_and_reference():
+    theta = jnp.asarray(np.random.default_rng(0).uniform(-4, 4, size=(20, 7)))
+    back = jax.vmap(lambda t: BOUNDS.from_mcm(BOUNDS.to_mcm(t)))(theta)
+    # logit(σ(θ)) loses about |θ| e^{|θ|} ε: measured 2.4e-13 at |θ| ≤ 4
+    np.testing.assert_allclose(back, theta, rtol=0, atol=1e-12)
+    ref = fdjax.reference_mcm()
+    np.testing.assert_allclose(
+        list(_physical(BOUNDS.to_mcm(BOUNDS.from_mcm(ref))).values()),
+        list(_physical(ref).values()), rtol=1e-13)
+    loop = fdjax.DoubleLoop(mcm=ref)
+    par = fdjax.DoubleLoopParameterisation(BOUNDS, loop)
+    theta = par.from_controller(loop)
+    np.testing.assert_allclose(theta[:5], [0, 0, 0, 1, 1], atol=1e-15)
+    assert par.names == fdjax.GAIN_PARAMETERS + fdjax.MCM_PARAMETERS and len(par.names) == 12
+    again = par.to_controller(theta)
+    for k in ("kp", "kv", "ki", "k_ffv", "k_ffa"):
+        np.testing.assert_allclose(getattr(again, k), getattr(loop, k), rtol=1e-14)
+
+
+@pytest.mark.parametrize("scale", [1.0, 30.0, 1e3])
+def test_every_theta_is_admissible(scale):
+    rng = np.random.default_rng(1)
+    for theta in scale * rng.normal(size=(25, 7)):
+        mcm = BOUNDS.to_mcm(jnp.asarray(theta))
+        _admissible(mcm)
+        assert np.all(np.isfinite(np.asarray(mcm.frf(np.array([10.0, 131.0, 3000.0])))))
+    mcm.discretize(T)  # the discretisation's own Nyquist check passes
+
+
+def test_gradient_is_finite_and_matches_central_differences():
+    f = lambda t: jnp.sum(jnp.abs(BOUNDS.to_mcm(t).frf(jnp.array([50.0, 131.0, 1500.0]))) ** 2)
+    theta = jnp.asarray(np.random.default_rng(2).normal(size=7))
+    g = jax.grad(f)(theta)
+    h = 1e-6
+    fd = np.array([(f(theta.at[i].add(h)) - f(theta.at[i].add(-h))) / (2 * h) for i in range(7)])
+    # central differences: truncation h² f''' ~ 1e-12 and round-off ε f/h ~ 1e-10 relative
+    np.testing.assert_allclose(g, fd, rtol=2e-7, atol=1e-8 * np.max(np.abs(fd)))
+    assert np.all(np.isfinite(np.asarray(jax.grad(f)(jnp.full(7, 1e3)))))
+
+
+def test_no_optimiser_step_leaves_the_domain():
+    # a loss that pulls the frequencies past the Nyquist frequency and the notch into a lead
+    # element, minimised with an absurd learning rate
+    def loss(t):
+        m = BOUNDS.to_mcm(t)
+        return -(m.peak.omega[0] + m.notch.omega[0]) * T - m.notch.zeta_n[0] / m.notch.zeta_d[0]
+
+    opt = optax.adam(100.0)
+    theta = jnp.zeros(7)
+    state = opt.init(theta)
+    step = jax.jit(lambda t, s: (lambda g: opt.update(g, s, t))(jax.grad(loss)(t)))
+    with jax.numpy_dtype_promotion("standard"):  # optax's bias correction: float ** int32
+        for _ in range(50):
+            upd, state = step(theta, state)
+            theta = optax.apply_updates(theta, upd)
+            _admissible(BOUNDS.to_mcm(theta))
+
+
+def test_errors_name_the_argument():
+    with pytest.raises(ValueError, match=r"`MCMBounds\(freq_hz=\.\.\.\)` must stay below the "
+                                         r"Nyquist frequency 4000 Hz"):
+        fdjax.MCMBounds(period=T, freq_hz=(10.0, 4500.0))
+    with pytest.raises(ValueError, match=r"`MCMBounds\.from_mcm\(mcm=\.\.\.\)`: the notch depth"):
+        BOUNDS.from_mcm(fdjax.MCM(fdjax.PeakFilter(0.5, 800.0, 0.3, -1.0),
+                                  fdjax.NotchFilter(9000.0, 0.6, 0.5)))
+    with pytest.raises(ValueError, match=r"the peak frequency ω \(rad/s\) must lie strictly"):
+        BOUNDS.from_mcm(fdjax.MCM(fdjax.PeakFilter(0.5, 3e4, 0.3, -1.0),
+                                  fdjax.NotchFilter(9000.0, 0.05, 0.5)))
+    with pytest.raises(ValueError, match=r"must have shape \(7,\), got \(6,\)"):
+        BOUNDS.to_mcm(jnp.zeros(6))
+    with pytest.raises(TypeError, match=r"must be an fdjax.MCMBounds"):
+        fdjax.DoubleLoopParameterisation(None)
+    with pytest.raises(ValueError, match=r"k_ffv sets the scale of its parameter"):
+        fdjax.DoubleLoopParameterisation(BOUNDS, fdjax.DoubleLoop(k_ffv=0.0))
