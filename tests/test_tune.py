@@ -112,3 +112,59 @@ def test_errors_name_the_argument():
         fdjax.DoubleLoopParameterisation(None)
     with pytest.raises(ValueError, match=r"k_ffv sets the scale of its parameter"):
         fdjax.DoubleLoopParameterisation(BOUNDS, fdjax.DoubleLoop(k_ffv=0.0))
+
+
+# ------------------------------------------------------------------ smooth margin penalties
+F_HZ = np.geomspace(1.0, 3000.0, 4000)
+
+
+def _loop(k):
+    """A delayed integrator with a lag: L = k e^{−iωτ}/(iω (1 + iω/a)), τ = 250 µs."""
+    s = 2j * np.pi * F_HZ
+    return k * np.exp(-s * 2.5e-4) / (s * (1 + s / (2 * np.pi * 400.0)))
+
+
+def test_distances_are_the_margins():
+    from fdjax._tune import gain_distance, modulus_distance, phase_distance
+
+    L = _loop(800.0)
+    m = fdjax.stability_margins(F_HZ, L)
+    # the grid's minima are the margins to the grid's resolution (4000 points over 3.5 decades:
+    # relative spacing 2e-3, the distance is flat to second order at its minimum)
+    np.testing.assert_allclose(np.min(modulus_distance(L)), m.modulus_margin, rtol=1e-5)
+    # at the margin itself the Nyquist curve touches the forbidden ray / arc
+    gm_db, pm = float(m.gain_margin_db), float(m.phase_margin_deg)
+    assert float(np.min(gain_distance(L, gm_db + 0.5))) < 1e-3
+    assert float(np.min(gain_distance(L, gm_db - 0.5))) > 1e-3
+    assert float(np.min(phase_distance(L, pm + 1.0))) < 2e-3
+    assert float(np.min(phase_distance(L, pm - 1.0))) > 1e-3
+    # distances against a brute-force oracle: the nearest of many points of the ray and the arc
+    a = 10 ** (-6 / 20)
+    ray = -np.linspace(a, 50.0, 200001)
+    arc = np.exp(1j * (np.pi + np.linspace(-np.pi / 6, np.pi / 6, 20001)))
+    pts = L[::97]
+    np.testing.assert_allclose(gain_distance(pts, 6.0),
+                               np.min(np.abs(pts[:, None] - ray[None]), axis=1), atol=3e-4)
+    np.testing.assert_allclose(phase_distance(pts, 30.0),
+                               np.min(np.abs(pts[:, None] - arc[None]), axis=1), atol=1e-4)
+
+
+def test_penalty_grows_with_gain_and_stays_finite():
+    from fdjax._tune import margin_penalty, soft_min
+
+    d = np.array([0.3, 0.7, 0.31])
+    assert float(soft_min(d, 200.0)) <= 0.3 and float(soft_min(d, 200.0)) > 0.3 - np.log(3) / 200
+    ks = np.array([200.0, 400.0, 800.0, 1200.0, 1600.0, 2400.0])
+    pen = np.array([float(margin_penalty(_loop(k))) for k in ks])
+    margins = fdjax.stability_margins(F_HZ, np.stack([_loop(k) for k in ks]))
+    mm = np.asarray(margins.modulus_margin)
+    bad = (mm < 0.5) | (np.asarray(margins.gain_margin_db) < 6) | (
+        np.asarray(margins.phase_margin_deg) < 30)
+    assert np.all(np.diff(pen) > 0)            # more gain, less margin, more penalty
+    # softplus(0)² = (ln 2)² at the requirement; a margin 2 widths clear costs < softplus(−2)²
+    assert np.all(pen[mm > 0.6] < 0.02) and np.all(pen[bad] > np.log(2) ** 2)
+    assert np.any(bad) and np.any(mm > 0.6)
+    # through the critical point itself: finite value and gradient
+    g = jax.grad(lambda k: margin_penalty(k * jnp.asarray(_loop(1.0))))
+    k_crit = 1.0 / float(margins.gain_margin[0]) * 200.0
+    assert np.isfinite(float(g(k_crit))) and float(g(k_crit)) > 0

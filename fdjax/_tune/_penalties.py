@@ -1,0 +1,101 @@
+r"""Smooth robustness penalties of an open loop on a frequency grid, for gradient tuning.
+
+The exact margins (:func:`fdjax.loop_margins`) are picked from crossings: a crossing that
+appears or disappears makes them jump, and they are infinite where there is none, so a penalty
+built on them is discontinuous and can blind the optimiser.  Here each requirement is a
+forbidden set of the Nyquist plane that the open loop L(e^{iωT}) must keep away from, measured
+by a smooth minimum of a distance over the grid:
+
+* modulus margin m: |1 + L| ≥ m, i.e. L outside the disc of radius m around −1
+  (sensitivity peak ‖S‖∞ ≤ 1/m; m = 0.5 is the 6 dB sensitivity peak);
+* gain margin g (dB): no crossing of the negative real axis at |L| ≥ 10^{−g/20}, i.e. L off the
+  ray (−∞, −10^{−g/20}];
+* phase margin φ: no unit-gain crossing within φ of −1, i.e. L off the arc
+  {e^{iθ} : |θ − π| ≤ φ}.
+
+The smooth minimum over the grid is −(1/β) log Σ_k exp(−β d_k) ≤ min_k d_k, below the true
+minimum by at most (log n)/β; each penalty is softplus((d_req − d̃)/w)², zero-ish when the
+requirement holds with room, growing quadratically when it fails, finite and differentiable for
+any L (the grid must resolve the loop's resonances, as for the exact margins).
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Complex, Float
+
+__all__ = ["soft_min", "modulus_distance", "gain_distance", "phase_distance", "margin_penalty"]
+
+
+def soft_min(d: Float[ArrayLike, "*batch freq"], beta: float) -> Float[Array, "*batch"]:
+    r"""Smooth minimum over the last axis, −(1/β) log Σ_k e^{−β d_k}: at most min d, and above
+    min d − (log n)/β."""
+    d = jnp.asarray(d)
+    return -jax.nn.logsumexp(-beta * d, axis=-1) / beta
+
+
+def modulus_distance(L: Complex[ArrayLike, "*batch freq"]) -> Float[Array, "*batch freq"]:
+    """|1 + L|: the distance from −1 (its minimum over ω is the modulus margin)."""
+    return jnp.abs(1.0 + jnp.asarray(L))
+
+
+def _segment_distance(x, y, a):
+    """Distance of (x, y) from the ray {(−t, 0): t ≥ a}."""
+    dx = jnp.maximum(x + a, 0.0)  # to the right of the ray's end: distance to its end point
+    return jnp.sqrt(dx * dx + y * y + 1e-300)
+
+
+def gain_distance(
+    L: Complex[ArrayLike, "*batch freq"], gain_margin_db: float
+) -> Float[Array, "*batch freq"]:
+    r"""Distance of L from the ray (−∞, −a], a = 10^{−g/20}: zero where the Nyquist curve
+    crosses the negative real axis with a gain margin below g dB."""
+    L = jnp.asarray(L)
+    a = 10.0 ** (-gain_margin_db / 20.0)
+    return _segment_distance(L.real, L.imag, a)
+
+
+def phase_distance(
+    L: Complex[ArrayLike, "*batch freq"], phase_margin_deg: float
+) -> Float[Array, "*batch freq"]:
+    r"""Distance of L from the arc {e^{iθ} : |θ − π| ≤ φ} of the unit circle: zero where the
+    loop crosses unit gain with a phase margin below φ."""
+    L = jnp.asarray(L)
+    phi = math.radians(phase_margin_deg)
+    r = jnp.abs(L)
+    # angle of L measured from the negative real axis, in [0, π]
+    theta = jnp.abs(jnp.angle(-L))
+    # inside the arc's sector the nearest point is the radial projection; outside, an end point
+    ends = (-math.cos(phi) + 1j * math.sin(phi), -math.cos(phi) - 1j * math.sin(phi))
+    end = jnp.minimum(jnp.abs(L - ends[0]), jnp.abs(L - ends[1]))
+    return jnp.where(theta <= phi, jnp.abs(r - 1.0), end)
+
+
+def margin_penalty(
+    L: Complex[ArrayLike, "*batch freq"],
+    *,
+    modulus_margin: float = 0.5,
+    gain_margin_db: float = 6.0,
+    phase_margin_deg: float = 30.0,
+    beta: float = 200.0,
+    width: float = 0.05,
+) -> Float[Array, "*batch"]:
+    r"""Sum of the three smooth penalties (module docstring) of an open loop L on a grid:
+
+        P = Σ_j softplus((d_j − d̃_j)/w)²,
+
+    d̃_j the smooth minimum of the j-th distance over the grid and d_j its requirement: the
+    modulus margin m for |1 + L|, and a clearance of w/4 from the gain-margin ray and the
+    phase-margin arc (zero distance is the violation there).  ``beta`` sets the smooth
+    minimum's sharpness (error ≤ log(n)/β), ``width`` w the penalty's scale.
+    """
+    L = jnp.asarray(L)
+    terms = (
+        (modulus_distance(L), modulus_margin),
+        (gain_distance(L, gain_margin_db), width / 4),
+        (phase_distance(L, phase_margin_deg), width / 4),
+    )
+    return sum(jax.nn.softplus((req - soft_min(d, beta)) / width) ** 2 for d, req in terms)
