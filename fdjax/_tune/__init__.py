@@ -3,11 +3,19 @@ steps cannot break.
 
 * ``_penalties``: smooth robustness penalties of an open loop (modulus, gain and phase
   margins as distances from forbidden sets of the Nyquist plane).
+* ``_objective``: :class:`Objective`, RMS tracking error of the sampled loop plus the
+  penalties, one function of the controller and the position.
+* ``_schedule``: :class:`ATANetwork` (position → the seven normalised filter parameters),
+  :class:`ScheduledLoop` (the double loop with the network's MCM), save and load.
 * ``_parameterisation``: :class:`MCMBounds` (the seven normalised MCM parameters the scheduling
   network outputs) and :class:`DoubleLoopParameterisation` (gains and filters of a
   :class:`fdjax.DoubleLoop` as one vector of order-one reals).
 """
 
+from ._objective import (
+    Objective as Objective,
+    ObjectiveTerms as ObjectiveTerms,
+)
 from ._parameterisation import (
     GAIN_PARAMETERS as GAIN_PARAMETERS,
     MCM_PARAMETERS as MCM_PARAMETERS,
@@ -20,4 +28,11 @@ from ._penalties import (
     modulus_distance as modulus_distance,
     phase_distance as phase_distance,
     soft_min as soft_min,
+)
+from ._schedule import (
+    ATANetwork as ATANetwork,
+    ScheduledLoop as ScheduledLoop,
+    fit_network as fit_network,
+    load_schedule as load_schedule,
+    save_schedule as save_schedule,
 )

@@ -1,0 +1,153 @@
+r"""The tuning objective: RMS tracking error of the sampled loop plus smooth robustness
+penalties (paper Sec. 4.2, Figs. 16–18).
+
+At a table position Y the drive's twin is built once and shared by a sampled-data simulation
+of the reference motion and the open loops on the unit circle:
+
+    J(controller, Y) = e_rms / e_ref
+                       + w_m Σ_breaks P_margin(L_b)                   (modulus, gain, phase)
+                       + w_s softplus((g − g_max)/g_w)²                (closed-loop poles)
+                       + w_c softplus((max|i| − i_max)/(0.05 i_max))²  (motor current),
+
+with e_rms the RMS error at the scale (or the tool point), P_margin the smooth penalties of
+:func:`margin_penalty` on every break point of the loop (plant input, speed feedback, scale),
+g the growth rate of the sampled closed loop's least stable pole (s = ln z / T; negative when
+stable) and max|i| the peak current command.  An unstable candidate gets a large, finite value
+and a finite gradient: the simulation stops at its error bound and freezes its outputs, the
+growth-rate barrier grows quadratically; nothing is NaN.  Final designs are then checked with
+the exact margins and the eigenvalues (:func:`fdjax.loop_margins`, :func:`fdjax.check_stability`).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float
+
+from .._analysis import open_loop
+from .._control._controllers import AbstractController
+from .._control._servo import Servo
+from .._drive._model import BallScrewDrive
+from .._drive._twin import TwinOptions, state_space
+from .._results import RESULTS
+from .._simulation import SampledData, simulate
+from .._trajectory import Trajectory
+from ._penalties import margin_penalty
+
+__all__ = ["Objective", "ObjectiveTerms"]
+
+
+class ObjectiveTerms(eqx.Module):
+    """The terms of :class:`Objective` at one position (arrays, batched under ``vmap``).
+
+    Attributes:
+        total: J.
+        rms_error_m: RMS tracking error (m).
+        margin_penalty: Σ over the break points of the smooth margin penalties.
+        growth_rate: growth rate of the least stable closed-loop pole (1/s).
+        peak_current_a: max |current command| (A).
+        stable: the sampled closed loop's poles all decay and the run succeeded.
+    """
+
+    total: Float[Array, "*batch"]
+    rms_error_m: Float[Array, "*batch"]
+    margin_penalty: Float[Array, "*batch"]
+    growth_rate: Float[Array, "*batch"]
+    peak_current_a: Float[Array, "*batch"]
+    stable: Array
+
+
+class Objective(eqx.Module):
+    r"""J(controller, Y) of the module docstring, a pure function of the controller's leaves and
+    the position (``vmap`` over positions, ``grad`` in the controller).
+
+    Attributes:
+        reference: the reference motion (e.g. :func:`fdjax.reciprocating`).
+        freq_hz: the frequency grid of the margin penalties (Hz), below the Nyquist frequency;
+            dense enough around the loop's resonances.
+        servo: the servo hardware (not tuned).
+        twin: how the drive becomes its twin (static).
+        output: ``"scale"`` (x2) or ``"tool"`` (x3), static.
+        error_scale_m: e_ref (m), static.
+        modulus_margin, gain_margin_db, phase_margin_deg: the requirements (static).
+        margin_weight, stability_weight, current_weight: w_m, w_s, w_c (static).
+        max_growth_rate: g_max (1/s), static: the least stable pole must decay at least at −g_max.
+        current_limit_a: i_max (A), static.
+        duration: simulated time (s), static; default the reference's duration.
+        error_bound_m: a run whose error passes this bound (m) stops; an unstable or diverged
+            run's tracking term is this bound over e_ref.
+    """
+
+    reference: Trajectory
+    freq_hz: Float[Array, " freq"]
+    servo: Servo = Servo()
+    twin: TwinOptions | None = eqx.field(static=True, default=None)
+    output: str = eqx.field(static=True, default="scale")
+    error_scale_m: float = eqx.field(static=True, default=1e-6)
+    modulus_margin: float = eqx.field(static=True, default=0.5)
+    gain_margin_db: float = eqx.field(static=True, default=6.0)
+    phase_margin_deg: float = eqx.field(static=True, default=30.0)
+    margin_weight: float = eqx.field(static=True, default=10.0)
+    stability_weight: float = eqx.field(static=True, default=10.0)
+    max_growth_rate: float = eqx.field(static=True, default=-5.0)
+    current_weight: float = eqx.field(static=True, default=1.0)
+    current_limit_a: float = eqx.field(static=True, default=40.0)
+    duration: float | None = eqx.field(static=True, default=None)
+    error_bound_m: float = eqx.field(static=True, default=0.01)
+
+    def __post_init__(self):
+        # the run's length sets the number of samples: static, read from the concrete reference
+        if self.duration is None and isinstance(self.reference, Trajectory):
+            self.duration = float(self.reference.duration)
+
+    def __check_init__(self):
+        if self.output not in ("scale", "tool"):
+            raise ValueError(f"`Objective(output=...)` must be 'scale' or 'tool', got "
+                             f"{self.output!r}")
+        if not isinstance(self.reference, Trajectory):
+            raise TypeError(f"`Objective(reference=...)` must be an fdjax.Trajectory, got "
+                            f"{type(self.reference).__name__}")
+        f = jnp.asarray(self.freq_hz)
+        if f.ndim != 1 or f.shape[0] < 8:
+            raise ValueError(f"`Objective(freq_hz=...)` must be a 1-D grid of at least 8 "
+                             f"frequencies, got shape {f.shape}")
+        for name in ("error_scale_m", "current_limit_a", "modulus_margin"):
+            if not float(getattr(self, name)) > 0:
+                raise ValueError(f"`Objective({name}=...)` must be positive, got "
+                                 f"{getattr(self, name)!r}")
+
+    def __call__(self, controller: AbstractController, drive: BallScrewDrive,
+                 position_m: Float[ArrayLike, ""]) -> ObjectiveTerms:
+        """The terms of J at table position ``position_m`` (m)."""
+        if not isinstance(controller, AbstractController):
+            raise TypeError(f"`Objective(controller=...)` must be an fdjax controller, got "
+                            f"{type(controller).__name__}")
+        plant = state_space(drive, position_m, twin=self.twin)
+        sim = simulate(controller, plant, self.reference, SampledData(), servo=self.servo,
+                       duration=self.duration, error_bound=self.error_bound_m, throw=False)
+        rms = sim.rms_error(self.output)
+        loops = open_loop(controller, plant, self.freq_hz, servo=self.servo)
+        pen = sum(
+            margin_penalty(L, modulus_margin=self.modulus_margin,
+                           gain_margin_db=self.gain_margin_db,
+                           phase_margin_deg=self.phase_margin_deg)
+            for L in (loops.plant_input, loops.speed, loops.position) if L is not None
+        )
+        g = sim.growth_rate
+        g_w = max(abs(self.max_growth_rate), 1.0)
+        barrier = jax.nn.softplus((g - self.max_growth_rate) / g_w) ** 2
+        i_peak = jnp.max(jnp.abs(sim.current))
+        i_max = self.current_limit_a
+        ok = (g < 0) & (sim.result == RESULTS.successful)
+        # a growing run's last current is no measure of the design: capped, without gradient
+        i_used = jnp.where(ok, i_peak, jnp.minimum(jax.lax.stop_gradient(i_peak), 2 * i_max))
+        current = jax.nn.softplus((i_used - i_max) / (0.05 * i_max)) ** 2
+        # An unstable or diverged run counts as the error bound it was stopped at, with no
+        # gradient of its own (that of an exponentially growing run is huge): the penalties
+        # and the growth-rate barrier lead back to stability.
+        tracking = jnp.where(ok, rms, jax.lax.stop_gradient(rms))
+        tracking = jnp.where(ok, tracking, self.error_bound_m) / self.error_scale_m
+        total = (tracking + self.margin_weight * pen
+                 + self.stability_weight * barrier + self.current_weight * current)
+        return ObjectiveTerms(total, rms, pen, g, i_peak, ok)

@@ -1,0 +1,228 @@
+r"""The adaptive tuning algorithm (ATA, paper Sec. 4.2, Fig. 15): a small network maps the table
+position to the MCM's seven filter parameters, and the scheduled controller is the double loop
+with the network's filters at the position it is asked at.
+
+    θ(Y) = W₃ σ(W₂ σ(W₁ ŷ + b₁) + b₂) + b₃,    ŷ = 2 (Y − Y_min)/(Y_max − Y_min) − 1,
+    MCM(Y) = ``bounds.to_mcm(θ(Y))``,
+
+σ the logistic function (two sigmoid hidden layers, as the paper's network), θ the normalised
+parameters of :class:`MCMBounds` (every output an admissible filter).  :class:`ScheduledLoop` is
+an :class:`fdjax.AbstractController` whose law at Y is that of its double loop with MCM(Y), so it
+runs through every path of the control architecture: margins, stability, both simulations.
+
+:func:`save_schedule` / :func:`load_schedule` store a schedule as its leaves
+(``eqx.tree_serialise_leaves``) beside a JSON file of its hyperparameters and units.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import optax
+from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
+
+from .._control._controllers import AbstractController, DoubleLoop, Law
+from .._filters import MCM
+from ._parameterisation import MCM_PARAMETERS, MCMBounds
+
+__all__ = ["ATANetwork", "ScheduledLoop", "fit_network", "save_schedule", "load_schedule"]
+
+_FORMAT = "fdjax-schedule/1"
+
+
+class ATANetwork(eqx.Module):
+    r"""The scheduling network: normalised table position in, two sigmoid hidden layers of
+    ``width`` neurons, the seven normalised MCM parameters out (module docstring).
+
+    Attributes:
+        mlp: the ``eqx.nn.MLP`` (1 → width → width → 7).
+        travel_m: (Y_min, Y_max) that map to ŷ = ∓1 (static).
+    """
+
+    mlp: eqx.nn.MLP
+    travel_m: tuple[float, float] = eqx.field(static=True)
+
+    def __init__(self, travel_m: tuple[float, float], *, width: int = 8,
+                 key: PRNGKeyArray | None = None):
+        lo, hi = (float(v) for v in travel_m)
+        if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+            raise ValueError(
+                f"`ATANetwork(travel_m=...)` must be an increasing (min, max) pair in m, got "
+                f"{travel_m!r}"
+            )
+        if not (isinstance(width, int) and 1 <= width <= 256):
+            raise ValueError(f"`ATANetwork(width=...)` must be an int in [1, 256], got {width!r}")
+        key = jax.random.PRNGKey(0) if key is None else key
+        self.mlp = eqx.nn.MLP(1, len(MCM_PARAMETERS), width, 2, activation=jax.nn.sigmoid,
+                              key=key, dtype=jnp.float64)
+        self.travel_m = (lo, hi)
+
+    @property
+    def width(self) -> int:
+        """Neurons per hidden layer."""
+        return self.mlp.width_size
+
+    def __call__(self, position_m: Float[ArrayLike, ""]) -> Float[Array, " 7"]:
+        """θ(Y), the normalised MCM parameters at table position Y (m)."""
+        lo, hi = self.travel_m
+        y = 2.0 * (jnp.asarray(position_m, jnp.float64) - lo) / (hi - lo) - 1.0
+        return self.mlp(jnp.reshape(y, (1,)))
+
+
+class ScheduledLoop(AbstractController):
+    r"""A double loop whose MCM is scheduled over the table position by an :class:`ATANetwork`
+    (paper Fig. 15): at Y, the law of ``loop`` with ``bounds.to_mcm(network(Y))``.
+
+    The gains (k_p, k_v, k_i, feed-forward) are those of ``loop`` (its own MCM is not used); the
+    network's weights and the gains are the tunable leaves.
+
+    Attributes:
+        loop: the double loop that carries the gains.
+        network: the scheduling network.
+        bounds: the admissible filters (static numbers).
+    """
+
+    loop: DoubleLoop
+    network: ATANetwork
+    bounds: MCMBounds
+
+    def __init__(self, loop: DoubleLoop, network: ATANetwork, bounds: MCMBounds):
+        for name, value, cls in (("loop", loop, DoubleLoop), ("network", network, ATANetwork),
+                                 ("bounds", bounds, MCMBounds)):
+            if not isinstance(value, cls):
+                raise TypeError(f"`ScheduledLoop({name}=...)` must be an fdjax.{cls.__name__}, "
+                                f"got {type(value).__name__}")
+        # the loop carries the gains only: its own MCM is replaced by the network's
+        self.loop = eqx.tree_at(lambda c: c.mcm, loop, MCM())
+        self.network = network
+        self.bounds = bounds
+
+    def controller(self, position_m: Float[ArrayLike, ""]) -> DoubleLoop:
+        """The fixed double loop the schedule runs at table position Y (m)."""
+        mcm = self.bounds.to_mcm(self.network(position_m))
+        return eqx.tree_at(lambda c: c.mcm, self.loop, mcm)
+
+    def law(self, position_m) -> Law:
+        """The law of :meth:`controller` at the table position."""
+        if position_m is None:
+            raise ValueError("`ScheduledLoop.law(position_m=...)` needs the table position (m)")
+        return self.controller(position_m).law(position_m)
+
+
+def fit_network(
+    network: ATANetwork,
+    positions_m: Float[ArrayLike, " n"],
+    targets: Float[ArrayLike, "n 7"],
+    *,
+    steps: int = 3000,
+    optimiser: optax.GradientTransformation | None = None,
+) -> tuple[ATANetwork, Float[Array, " steps"]]:
+    r"""Train the network by backpropagation on local designs, as the paper does (Sec. 4.2):
+    minimise the mean squared error (1/n) Σ_i ‖θ(Y_i) − θ_i‖² over the design positions Y_i
+    and their normalised parameters θ_i (:meth:`MCMBounds.from_mcm` of the local MCMs).
+
+    ``steps`` optimiser steps (a ``lax.scan``: one compilation) of ``optimiser`` (default
+    ``optax.adam(1e-2)``) on the network's weights.  Returns the trained network and the loss
+    after each step.
+    """
+    if not isinstance(network, ATANetwork):
+        raise TypeError(f"`fit_network(network=...)` must be an fdjax.ATANetwork, got "
+                        f"{type(network).__name__}")
+    y = jnp.asarray(positions_m, jnp.float64)
+    t = jnp.asarray(targets, jnp.float64)
+    if y.ndim != 1 or t.shape != (y.shape[0], len(MCM_PARAMETERS)):
+        raise ValueError(
+            f"`fit_network(positions_m=..., targets=...)` must have shapes (n,) and (n, 7), got "
+            f"{y.shape} and {t.shape}"
+        )
+    if not (isinstance(steps, int) and steps >= 1):
+        raise ValueError(f"`fit_network(steps=...)` must be a positive int, got {steps!r}")
+    opt = optax.adam(1e-2) if optimiser is None else optimiser
+    return _fit(network, y, t, steps, opt)
+
+
+@eqx.filter_jit
+def _fit(network, y, t, steps, opt):
+    params, static = eqx.partition(network, eqx.is_inexact_array)
+
+    def loss(p):
+        net = eqx.combine(p, static)
+        return jnp.mean(jnp.sum((jax.vmap(net)(y) - t) ** 2, axis=-1))
+
+    def step(carry, _):
+        p, state = carry
+        value, g = jax.value_and_grad(loss)(p)
+        # optax's bias correction raises a float to an int32 power: standard promotion
+        with jax.numpy_dtype_promotion("standard"):
+            upd, state = opt.update(g, state, p)
+            p = optax.apply_updates(p, upd)
+        return (p, state), value
+
+    with jax.numpy_dtype_promotion("standard"):
+        state = opt.init(params)
+    (params, _), history = jax.lax.scan(step, (params, state), None, length=steps)
+    return eqx.combine(params, static), history
+
+
+def _hyperparameters(schedule: ScheduledLoop, extra: dict | None) -> dict:
+    b = schedule.bounds
+    return {
+        "format": _FORMAT,
+        "network": {"width": schedule.network.width, "depth": 2, "activation": "sigmoid",
+                    "inputs": ["position (normalised over travel_m)"],
+                    "outputs": list(MCM_PARAMETERS), "travel_m": list(schedule.network.travel_m)},
+        "bounds": {"period_s": b.period, "freq_hz": list(b.freq_hz),
+                   "peak_gain": list(b.peak_gain), "peak_damping": list(b.peak_damping),
+                   "peak_phase_max_rad": b.peak_phase_max,
+                   "notch_damping": list(b.notch_damping), "notch_depth_min": b.notch_depth_min},
+        "units": {"kp": "1/s", "kv": "A·s/m", "ki": "rad/s", "k_ffv": "-", "k_ffa": "A·s²/m",
+                  "position": "m", "omega": "rad/s"},
+        "gains": {k: float(getattr(schedule.loop, k))
+                  for k in ("kp", "kv", "ki", "k_ffv", "k_ffa")},
+        "metadata": dict(extra or {}),
+    }
+
+
+def save_schedule(path: str | os.PathLike, schedule: ScheduledLoop, *,
+                  metadata: dict | None = None) -> None:
+    """Write ``schedule`` to ``path`` (its leaves, ``eqx.tree_serialise_leaves``) and its
+    hyperparameters, units and ``metadata`` (e.g. the drive it was tuned for) to the JSON file
+    beside it (``path`` with suffix ``.json``).  :func:`load_schedule` reads both back,
+    bit for bit."""
+    if not isinstance(schedule, ScheduledLoop):
+        raise TypeError(f"`save_schedule(schedule=...)` must be an fdjax.ScheduledLoop, got "
+                        f"{type(schedule).__name__}")
+    path = os.fspath(path)
+    meta = _hyperparameters(schedule, metadata)
+    eqx.tree_serialise_leaves(path, schedule)
+    with open(os.path.splitext(path)[0] + ".json", "w") as f:
+        json.dump(meta, f, indent=2, ensure_ascii=False)
+
+
+def load_schedule(path: str | os.PathLike) -> ScheduledLoop:
+    """Read a schedule written by :func:`save_schedule` (the leaves at ``path``, the
+    hyperparameters from the JSON file beside it)."""
+    path = os.fspath(path)
+    meta_path = os.path.splitext(path)[0] + ".json"
+    for p in (path, meta_path):
+        if not os.path.exists(p):
+            raise FileNotFoundError(f"`load_schedule(path=...)`: no file {p!r}")
+    with open(meta_path) as f:
+        meta = json.load(f)
+    if meta.get("format") != _FORMAT:
+        raise ValueError(f"`load_schedule(path=...)`: {meta_path!r} is not an fdjax schedule "
+                         f"(format {meta.get('format')!r}, expected {_FORMAT!r})")
+    b = meta["bounds"]
+    bounds = MCMBounds(period=b["period_s"], freq_hz=tuple(b["freq_hz"]),
+                       peak_gain=tuple(b["peak_gain"]), peak_damping=tuple(b["peak_damping"]),
+                       peak_phase_max=b["peak_phase_max_rad"],
+                       notch_damping=tuple(b["notch_damping"]),
+                       notch_depth_min=b["notch_depth_min"])
+    net = ATANetwork(tuple(meta["network"]["travel_m"]), width=meta["network"]["width"])
+    like = ScheduledLoop(DoubleLoop(**meta["gains"]), net, bounds)
+    return eqx.tree_deserialise_leaves(path, like)

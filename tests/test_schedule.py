@@ -1,0 +1,88 @@
+"""The ATA scheduling network, the scheduled loop, and saving and loading a schedule."""
+
+import json
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import fdjax
+
+BOUNDS = fdjax.MCMBounds.for_servo(fdjax.Servo())
+POSITIONS = np.linspace(0.1, 0.7, 6)
+
+
+def _local_designs():
+    """Six smooth, distinct local designs (normalised parameters) over the travel."""
+    y = (POSITIONS - 0.4) / 0.3
+    return np.stack([0.5 + 0.3 * y, -0.2 + 0.4 * y ** 2, 0.8 - 0.1 * y, -0.3 * y,
+                     1.7 - 0.5 * y, 1.0 + 0.2 * y, -0.7 + 0.1 * y ** 3], axis=1)
+
+
+def test_network_shape():
+    net = fdjax.ATANetwork((0.1, 0.7), width=8)
+    assert net.width == 8 and net.mlp.depth == 2 and net.mlp.activation is jax.nn.sigmoid
+    assert net.mlp.in_size == 1 and net.mlp.out_size == 7
+    assert net(0.3).shape == (7,) and net(0.3).dtype == jnp.float64
+    out = jax.vmap(net)(jnp.asarray(POSITIONS))
+    np.testing.assert_allclose(out[2], net(POSITIONS[2]), rtol=1e-15)
+    with pytest.raises(ValueError, match=r"`ATANetwork\(travel_m=\.\.\.\)` must be an increasing"):
+        fdjax.ATANetwork((0.7, 0.1))
+
+
+def test_backpropagation_fits_the_local_designs():
+    targets = _local_designs()
+    net0 = fdjax.ATANetwork((0.1, 0.7), width=8, key=jax.random.PRNGKey(3))
+    net, history = fdjax.fit_network(net0, POSITIONS, targets, steps=4000)
+    history = np.asarray(history)
+    assert history.shape == (4000,) and np.all(np.isfinite(history))
+    assert history[-1] < 1e-3 * history[0]
+    fitted = np.asarray(jax.vmap(net)(jnp.asarray(POSITIONS)))
+    # 7 smooth targets at 6 points with 8+8 sigmoid neurons: measured max error 6e-3
+    np.testing.assert_allclose(fitted, targets, atol=2e-2)
+    with pytest.raises(ValueError, match=r"must have shapes \(n,\) and \(n, 7\)"):
+        fdjax.fit_network(net0, POSITIONS, targets[:, :6])
+
+
+def test_scheduled_loop_is_the_fixed_loop_at_each_position():
+    net = fdjax.ATANetwork((0.1, 0.7), width=4, key=jax.random.PRNGKey(1))
+    sched = fdjax.ScheduledLoop(fdjax.DoubleLoop(mcm=fdjax.reference_mcm()), net, BOUNDS)
+    assert sched.loop.mcm.peak is None  # the loop carries the gains only
+    y = 0.37
+    fixed = sched.controller(y)
+    theta = np.asarray(BOUNDS.from_mcm(fixed.mcm))
+    np.testing.assert_allclose(theta, np.asarray(net(y)), rtol=1e-10, atol=1e-12)
+    drive = fdjax.reference_drive()
+    f = np.geomspace(10.0, 3000.0, 64)
+    twin = fdjax.TwinOptions(kept_modes=6)
+    a = fdjax.open_loop(sched, drive, f, position_m=y, twin=twin)
+    b = fdjax.open_loop(fixed, drive, f, position_m=y, twin=twin)
+    for k in ("plant_input", "speed", "position"):
+        np.testing.assert_allclose(getattr(a, k), getattr(b, k), rtol=1e-13)
+    # gradients reach the network's weights and the gains, not the hardware
+    g = eqx.filter_grad(
+        lambda c: jnp.sum(jnp.abs(fdjax.open_loop(c, drive, f, position_m=y, twin=twin).speed))
+    )(sched)
+    leaves = jax.tree_util.tree_leaves(g.network)
+    assert leaves and all(np.all(np.isfinite(np.asarray(v))) for v in leaves)
+    assert any(np.any(np.asarray(v) != 0) for v in leaves)
+
+
+def test_save_and_load_are_bit_exact(tmp_path):
+    net = fdjax.ATANetwork((0.1, 0.7), width=5, key=jax.random.PRNGKey(2))
+    sched = fdjax.ScheduledLoop(fdjax.DoubleLoop(kp=55.0, kv=2e3), net, BOUNDS)
+    path = tmp_path / "schedule.eqx"
+    fdjax.save_schedule(path, sched, metadata={"drive": "reference_drive()"})
+    meta = json.loads((tmp_path / "schedule.json").read_text())
+    assert meta["network"]["width"] == 5 and meta["units"]["kv"] == "A·s/m"
+    assert meta["metadata"]["drive"] == "reference_drive()"
+    back = fdjax.load_schedule(path)
+    la, lb = jax.tree_util.tree_leaves(sched), jax.tree_util.tree_leaves(back)
+    assert len(la) == len(lb)
+    for x, y in zip(la, lb):
+        assert np.array_equal(np.asarray(x), np.asarray(y))
+    assert back.bounds == sched.bounds and back.network.travel_m == (0.1, 0.7)
+    with pytest.raises(FileNotFoundError, match=r"`load_schedule\(path=\.\.\.\)`: no file"):
+        fdjax.load_schedule(tmp_path / "missing.eqx")
