@@ -32,17 +32,29 @@ def _cplx(re: Array, im: Array) -> Array:
     return jax.lax.complex(jnp.asarray(re, jnp.float64), jnp.asarray(im, jnp.float64))
 
 
-def _basis(s: Array, poles: Array, rigid_body: int, upper_residual: bool):
+def _basis(s: Array, poles: Array, rigid_body: int, upper_residual: bool,
+           real_poles: Array | None = None):
     """Modal basis (N, 2n) and fixed basis (N, n_fixed), complex.
 
     For the pole pair (a, a*) the two real-coefficient columns are
     1/(s-a) + 1/(s-a*) and i/(s-a) - i/(s-a*): c1 φ1 + c2 φ2 = R/(s-a) + R*/(s-a*) with
-    R = c1 + i c2.
+    R = c1 + i c2. The fixed basis is, in this order, ψ_a = 1/(s^b (s-a)) for each real
+    pole a (``real_poles``; b = ``rigid_body``), s⁻², s⁻¹ (the last b of them) and 1.
+
+    ψ_a spans with s⁻¹ … s⁻ᵇ the same space as 1/(s-a), since
+    Q/(s-a) = Q Σ_{j<b} aʲ/s^{j+1} + Q aᵇ ψ_a, but is not nearly parallel to them: for a
+    real pole far below the band (a damped rigid body, |a| ≪ ω), 1/(s-a) ≈ 1/s + a/s² and the
+    normal equations would lose all the digits of the difference. :func:`_real_residues`
+    maps the coefficients back.
     """
     inv = 1.0 / (s[:, None] - poles[None, :])
     invc = 1.0 / (s[:, None] - jnp.conj(poles)[None, :])
     modal = jnp.stack([inv + invc, 1j * (inv - invc)], axis=-1).reshape(s.shape[0], -1)
-    fixed = [s**-2, s**-1][2 - rigid_body :]
+    fixed = []
+    if real_poles is not None:
+        psi = 1.0 / (s[:, None] - to_complex(real_poles)[None, :]) / s[:, None] ** rigid_body
+        fixed += list(psi.T)
+    fixed += [s**-2, s**-1][2 - rigid_body :]
     if upper_residual:
         fixed.append(jnp.ones_like(s))
     if fixed:
@@ -123,13 +135,27 @@ def _lstsq_jvp(primals, tangents):
     return (x, r), (dx, e - a @ dx)
 
 
-def _linear_fit(poles, s, h, w, rigid_body, upper_residual):
+def _real_residues(q, real_poles, rigid, rigid_body):
+    """From the coefficients q of ψ_a (see :func:`_basis`) to the residues Q of 1/(s-a), and
+    the s⁻¹ … s⁻ᵇ coefficients ``rigid`` (rows: the last ``rigid_body`` of s⁻², s⁻¹) of the
+    same fit written with 1/(s-a): Q = q/aᵇ, and Q aʲ/s^{j+1} moves out of the s^{-(j+1)}
+    coefficient."""
+    a = real_poles[:, None]
+    big_q = q / a**rigid_body
+    rigid = list(rigid)
+    for j in range(rigid_body):
+        # rigid's rows are s^-rb … s^-1; s^-(j+1) is row rb − 1 − j
+        rigid[rigid_body - 1 - j] = rigid[rigid_body - 1 - j] - jnp.sum(big_q * a**j, axis=0)
+    return big_q, rigid
+
+
+def _linear_fit(poles, s, h, w, rigid_body, upper_residual, real_poles=None):
     """For fixed poles, the weighted linear least-squares coefficients and residuals.
 
     Per channel k: min_x ||w_k (Φ x − h_k)|| over real x, Φ = [modal, fixed], real and
     imaginary parts stacked. Returns x of shape (m, C) and the weighted residuals (C, 2N).
     """
-    modal, fixed = _basis(s, poles, rigid_body, upper_residual)
+    modal, fixed = _basis(s, poles, rigid_body, upper_residual, real_poles)
     phi = jnp.concatenate([modal, fixed], axis=1)
 
     def one(hk, wk):
