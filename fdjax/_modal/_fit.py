@@ -56,7 +56,7 @@ class ModalFit(eqx.Module):
     - ``poles``: :math:`\lambda_r` in rad/s, upper half plane, shape ``(n_modes,)``.
     - ``real_poles``: real poles :math:`a_j < 0` in rad/s (the damped rigid body
       :math:`-c_\text{eq}/J_\text{eq}` of a drive on damped guideways; not modes), shape
-      ``(n_real,)``, ``(0,)`` when none were fitted.
+      ``(n_real,)``, ``(0,)`` (or ``None``) when none were fitted.
     - ``real_residues``: their real residues :math:`Q_{jk}`, shape ``(n_real, *channel_shape)``.
     - ``rigid_body``: :math:`(c_{0k}, c_{1k})`, the coefficients of :math:`1/s^2` and
       :math:`1/s`, shape ``(2, *channel_shape)`` (zero where not fitted).
@@ -74,14 +74,14 @@ class ModalFit(eqx.Module):
     phase_deg: Float[Array, "*batch mode *channel"]
     residues: Complex[Array, "*batch mode *channel"]
     poles: Complex[Array, "*batch mode"]
-    real_poles: Float[Array, "*batch real"]
-    real_residues: Float[Array, "*batch real *channel"]
     rigid_body: Float[Array, "*batch 2 *channel"]
     upper_residual: Float[Array, "*batch *channel"]
     fit_error: Float[Array, "*batch *channel"]
     fit_error_total: Float[Array, "*batch"]
     num_steps: Int[Array, "*batch"]
     result: optx.RESULTS
+    real_poles: Float[Array, "*batch real"] | None = None
+    real_residues: Float[Array, "*batch real *channel"] | None = None
 
     @property
     def n_modes(self) -> int:
@@ -112,6 +112,8 @@ class ModalFit(eqx.Module):
         c1 = to_complex(self.rigid_body[1])[None]
         d = to_complex(self.upper_residual)[None]
         out = modal + c0 / s_**2 + c1 / s_ + d
+        if self.real_poles is None:
+            return out
         for a, q in zip(self.real_poles, self.real_residues):
             out = out + to_complex(q)[None] / (s_ - to_complex(a))
         return out

@@ -199,7 +199,8 @@ def identify_modes(
     .. math::
 
         H_k(i\omega) \approx \sum_{r=1}^{n} \Big(\frac{R_{rk}}{i\omega-\lambda_r}
-        + \frac{R_{rk}^*}{i\omega-\lambda_r^*}\Big) + \frac{c_{0k}}{(i\omega)^2}
+        + \frac{R_{rk}^*}{i\omega-\lambda_r^*}\Big) + \sum_{j=1}^{n_r}
+        \frac{Q_{jk}}{i\omega-a_j} + \frac{c_{0k}}{(i\omega)^2}
         + \frac{c_{1k}}{i\omega} + d_k
 
     by minimising :math:`\sum_{f,k} |w_{fk}(H^\text{fit}_k - H_k)(f)|^2`: vector fitting for
@@ -221,14 +222,25 @@ def identify_modes(
     - ``freq_hz``: frequency grid in Hz, positive and strictly increasing, shape ``(freq,)``.
     - ``frf``: complex FRF with frequency on the first axis, shape ``(freq,)``,
       ``(freq, n_out)`` or ``(freq, n_out, n_in)``; all channels share the poles.
-    - ``n_modes``: number of complex-conjugate mode pairs in the band.
+    - ``n_modes``: number of complex-conjugate mode pairs in the band; ``None`` (the default)
+      chooses the order from a stabilisation diagram (below).
     - ``rigid_body``: number of poles at :math:`s=0`: 2 fits :math:`c_0/s^2 + c_1/s` (a
       free axis such as a ball-screw drive), 1 only :math:`c_1/s`, 0 none.
+    - ``real_poles``: number of real poles :math:`Q_{jk}/(s-a_j)`, :math:`a_j<0`, in the
+      model (not modes: reported as ``ModalFit.real_poles``). A ball-screw drive on damped
+      guideways has the rigid body :math:`i_{sc}/(s(J_\text{eq}s+c_\text{eq}))`, a pole at
+      0 and one at :math:`-c_\text{eq}/J_\text{eq}` (a few rad/s, below the band), which
+      without a real pole bends a complex pair (mode 1) into it. Default: 1 without
+      ``n_modes``, 0 with it (as before).
     - ``upper_residual``: fit the constant :math:`d_k` for modes above the band.
     - ``weights``: positive weights :math:`w`, broadcastable to ``frf``; default
       :math:`1/|H|` (relative error).
     - ``initial``: a previous ``ModalFit`` (e.g. the neighbouring position) whose poles start
-      the refinement instead of vector fitting.
+      the refinement instead of vector fitting; or a :class:`StabilisationDiagram` of the
+      same data (from :func:`stabilisation_diagram`, with its own tolerances), whose
+      selected poles start it (then ``n_modes`` is None).
+    - ``max_modes``: without ``n_modes``, the highest order (pole pairs) of the diagram
+      (default 16, fewer on short grids; it stops earlier once the fit has converged).
     - ``refine``: ``False`` returns the vector-fitting estimate (residues solved for its
       poles) without the nonlinear refinement.
     - ``vf_iterations``: number of vector-fitting pole relocations (with the spare pairs).
@@ -243,6 +255,21 @@ def identify_modes(
       vector-fitting start.
     - ``max_steps``, ``throw``: passed to ``optimistix.least_squares``; with
       ``throw=False`` a failed refinement is reported in ``ModalFit.result``.
+
+    **Without an order** (``n_modes=None``): :func:`stabilisation_diagram` fits orders
+    1, 2, … pole pairs by vector fitting (with ``real_poles`` real poles free to split
+    off), marks a pole *stable* when the previous order has one within 1 % in frequency and
+    5 % in damping ratio and *physical* when also in the band with ζ < 0.5, and takes as
+    modes the clusters of physical poles seen at three orders or more; the lowest converged
+    order holding all of them is selected. Its poles of those modes, its pairs above the
+    band (whose influence on the band's top is not a constant) and its ``real_poles``
+    largest real poles start the variable-projection refinement above, which is then
+    jit/vmap/grad-capable as with ``n_modes``. Returned modes include those pairs above the
+    band (``frequency_hz > freq_hz[-1]``: background, not identified modes). Should the
+    refinement fail or lose a mode (a pole leaving the band or reaching ζ ≥ 1), the
+    selected order's vector-fitting estimate is returned instead (``num_steps`` 0): a
+    reasonable measurement never ends in a solver error. Eager (the order is a discrete
+    choice on concrete data): not inside ``jit``; use ``n_modes`` there.
 
     **Returns:** a :class:`ModalFit`.
     """
@@ -273,8 +300,10 @@ def identify_modes(
         data = jax.lax.stop_gradient((s, h, w))
         p0 = _start(*data, model, vf_iterations, vf_extra_modes)
     else:
-        p0 = jax.lax.stop_gradient((initial.poles.astype(jnp.complex128) / to_complex(omega_ref),
-                                    initial.real_poles.astype(jnp.float64) / omega_ref))
+        r0 = (jnp.zeros((0,)) if initial.real_poles is None
+              else initial.real_poles.astype(jnp.float64) / omega_ref)
+        p0 = jax.lax.stop_gradient(
+            (initial.poles.astype(jnp.complex128) / to_complex(omega_ref), r0))
     return _finish(s, h, w, h_scale, omega_ref, p0, solver, model, bool(refine), max_steps,
                    bool(throw))
 
@@ -346,10 +375,11 @@ def _check_inputs(where, n_batch, freq_hz, frf, n_modes, rigid_body, upper_resid
                 f"{n_modes}), got poles of shape {initial.poles.shape}"
             )
         expected = (*frf.shape[:n_batch], real_poles)
-        if initial.real_poles.shape != expected:
+        got = (*frf.shape[:n_batch], 0) if initial.real_poles is None else initial.real_poles.shape
+        if got != expected:
             raise ValueError(
                 f"`{where}(initial=...)` must hold real poles of shape {expected} (real_poles "
-                f"= {real_poles}), got real poles of shape {initial.real_poles.shape}"
+                f"= {real_poles}), got real poles of shape {got}"
             )
     static = (rigid_body, upper_residual, vf_iterations, vf_extra_modes, max_steps, real_poles)
     return freq_hz, frf, weights, n_modes, static
@@ -358,17 +388,18 @@ def _check_inputs(where, n_batch, freq_hz, frf, n_modes, rigid_body, upper_resid
 def identify_modes_batched(
     freq_hz: Float[ArrayLike, " freq"],
     frf: Complex[ArrayLike, "position freq *channel"],
-    n_modes: int,
+    n_modes: int | None = None,
     *,
     batch_size: int = 1,
     rigid_body: int = 2,
-    real_poles: int = 0,
+    real_poles: int | None = None,
     upper_residual: bool = True,
     weights: Float[ArrayLike, "position freq *channel"] | None = None,
     initial: ModalFit | None = None,
     refine: bool = True,
     vf_iterations: int = 10,
     vf_extra_modes: int = 3,
+    max_modes: int | None = None,
     solver: optx.AbstractLeastSquaresSolver | None = None,
     max_steps: int = 256,
     throw: bool = True,
@@ -386,7 +417,21 @@ def identify_modes_batched(
     refinement iterates until its slowest position has converged. On a GPU use a large
     ``batch_size`` (``n_positions`` is the same as ``jax.vmap(identify_modes)``).
     The other arguments are those of :func:`identify_modes`.
+
+    Without ``n_modes`` every position chooses its own order from its stabilisation
+    diagram (:func:`identify_modes` with ``n_modes=None``, eagerly, one position after the
+    other; ``batch_size``, ``initial``, ``refine`` and ``vf_extra_modes`` do not enter) and
+    the modes *inside the band* are returned, padded with NaN to the largest count over the
+    positions (a mode not found at a position); :func:`track_modes` pairs them.
     """
+    if n_modes is None:
+        return _identify_sweep(
+            freq_hz, frf, weights, rigid_body=rigid_body,
+            real_poles=1 if real_poles is None else real_poles, upper_residual=upper_residual,
+            max_modes=max_modes, vf_iterations=vf_iterations, solver=solver,
+            max_steps=max_steps, throw=throw,
+        )
+    real_poles = 0 if real_poles is None else real_poles
     freq_hz, frf, weights, n_modes, static = _check_inputs(
         "identify_modes_batched", 1, freq_hz, frf, n_modes, rigid_body, upper_residual,
         weights, initial, vf_iterations, vf_extra_modes, max_steps, real_poles,
@@ -405,14 +450,26 @@ def identify_modes_batched(
 
 @eqx.filter_jit
 def _identify_positions(freq_hz, frf, weights, initial, n_modes, batch_size, options):
+    n_real = options["real_poles"]
+
     def one(args):
         h, w, init = args
-        return identify_modes(freq_hz, h, n_modes, weights=w, initial=init, **options)
+        fit = identify_modes(freq_hz, h, n_modes, weights=w, initial=init, **options)
+        if n_real == 0:  # lax.map's chunking cannot reshape zero-size outputs
+            fit = eqx.tree_at(lambda m: (m.real_poles, m.real_residues), fit, (None, None),
+                              is_leaf=lambda x: x is None)
+        return fit
 
     # A loop over the positions in chunks of batch_size; batch_size=1 maps without vmap (a
     # batched non-symmetric eig, the vector-fitting zeros, has been seen to dead-lock on
     # XLA:CPU).
-    return map_positions(one, (frf, weights, initial), has_eig=False, batch_size=batch_size)
+    fits = map_positions(one, (frf, weights, initial), has_eig=False, batch_size=batch_size)
+    if n_real == 0:
+        n_pos = frf.shape[0]
+        empty = (jnp.zeros((n_pos, 0)), jnp.zeros((n_pos, 0, *frf.shape[2:])))
+        fits = eqx.tree_at(lambda m: (m.real_poles, m.real_residues), fits, empty,
+                           is_leaf=lambda x: x is None)
+    return fits
 
 
 def _identify_auto(freq_hz, frf, n_modes, *, rigid_body, real_poles, upper_residual, weights,
@@ -488,3 +545,41 @@ def _refined_ok(fit: ModalFit, diagram: StabilisationDiagram, band) -> bool:
         if abs(f[k] - fm) > 0.05 * fm or z[k] >= 1.0 or not band[0] <= f[k] <= band[1]:
             return False
     return True
+
+
+def _identify_sweep(freq_hz, frf, weights, *, rigid_body, real_poles, upper_residual,
+                    max_modes, vf_iterations, solver, max_steps, throw) -> ModalFit:
+    """identify_modes_batched without an order: each position's order chosen by its own
+    stabilisation diagram (eagerly, position by position); the modes inside the band are
+    returned, NaN-padded to the largest count over the positions."""
+    fn = "identify_modes_batched"
+    frf = jnp.asarray(frf)
+    if frf.ndim < 2:
+        raise ValueError(f"`{fn}(frf=...)` must have a leading position axis, got shape "
+                         f"{frf.shape}")
+    freq_np = np.asarray(freq_hz, dtype=np.float64)
+    fits = []
+    for p in range(frf.shape[0]):
+        w = None if weights is None else jnp.broadcast_to(jnp.asarray(weights), frf.shape)[p]
+        fit = identify_modes(freq_hz, frf[p], rigid_body=rigid_body, real_poles=real_poles,
+                             upper_residual=upper_residual, weights=w, max_modes=max_modes,
+                             vf_iterations=vf_iterations, solver=solver, max_steps=max_steps,
+                             throw=throw)
+        f = np.asarray(fit.frequency_hz)
+        fits.append((fit, np.flatnonzero((f >= freq_np[0]) & (f <= freq_np[-1]))))
+    n = max(k.size for _, k in fits)
+
+    def take(fit, k):
+        def pad(x):
+            x = np.asarray(x)[k]
+            fill = np.full((n - k.size, *x.shape[1:]), np.nan, dtype=x.dtype)
+            return np.concatenate([x, fill], axis=0)
+
+        return eqx.tree_at(
+            lambda m: (m.frequency_hz, m.damping_ratio, m.phase_deg, m.residues, m.poles),
+            fit, tuple(jnp.asarray(pad(x)) for x in (fit.frequency_hz, fit.damping_ratio,
+                                                      fit.phase_deg, fit.residues, fit.poles)),
+        )
+
+    fits = [take(fit, k) for fit, k in fits]
+    return jax.tree_util.tree_map(lambda *x: jnp.stack(x), *fits)
