@@ -313,6 +313,8 @@ def reproduce(out: str, quick: bool = False) -> dict:
 
 # The band `fdjax modes` identifies in, and reports the model's modes in.
 MODES_BAND_HZ = (10.0, 2500.0)
+# Screw elements of the twin whose eigen-analysis `fdjax modes --source model` reports.
+MODES_TWIN_ELEMENTS = 48
 
 
 def modes(out: str | None, n_positions: int, n_modes: int | None, source: str) -> dict:
@@ -340,7 +342,11 @@ def modes(out: str | None, n_positions: int, n_modes: int | None, source: str) -
             result = _lowest(result, n_modes)
         result = fdjax.track_modes(result)
     else:
-        m = fdjax.drive_modes(drive, pos, n_modes=max(12, n_modes or 0))
+        # The default twin mesh (12 screw elements) meets 0.5 % below 2 kHz; the band reaches
+        # 2.5 kHz, where its 2.42 kHz mode sits 0.54 % above the FRF's. 48 elements converge
+        # it to 0.03 % (O(h²)).
+        twin = fdjax.TwinOptions(n_elements=MODES_TWIN_ELEMENTS)
+        m = fdjax.drive_modes(drive, pos, n_modes=max(12, n_modes or 0), twin=twin)
         n_band = int(np.min(np.sum(np.asarray(m.frequency_hz) <= f_hi, axis=1)))
         result = fdjax.track_drive_modes(_lowest(m, n_band if n_modes is None else n_modes))
     fr, z, ph = (np.asarray(x) for x in (result.frequency_hz, result.damping_ratio,

@@ -260,7 +260,7 @@ def identify_modes(
     1, 2, … pole pairs by vector fitting (with ``real_poles`` real poles free to split
     off), marks a pole *stable* when the previous order has one within 1 % in frequency and
     5 % in damping ratio and *physical* when also in the band with ζ < 0.5, and takes as
-    modes the clusters of physical poles seen at three orders or more; the lowest converged
+    modes the clusters of physical poles seen at two orders or more; the lowest converged
     order holding all of them is selected. Its poles of those modes, its pairs above the
     band (whose influence on the band's top is not a constant) and its ``real_poles``
     largest real poles start the variable-projection refinement above, which is then
@@ -505,7 +505,7 @@ def _identify_auto(freq_hz, frf, n_modes, *, rigid_body, real_poles, upper_resid
     else:
         n_fixed = rigid_body + int(upper_residual) + real_poles
         opts = _order_options(fn, freq_hz.shape[0], n_fixed, max_modes, vf_iterations, 0.01,
-                              0.05, 0.5, 3)
+                              0.05, 0.5, 2)
         diagram = _diagram_of(freq_hz, frf, weights, real_poles, rigid_body, upper_residual,
                               opts)
     if diagram.n_modes == 0:

@@ -24,8 +24,9 @@ complex pair (mode 1) into it.
 A pole pair of order :math:`n` is *stable* when order :math:`n-1` has a pair within
 ``freq_tol`` (relative) in natural frequency and ``damping_tol`` (relative) in damping ratio,
 and *physical* when it is stable, inside the band and :math:`\zeta < ` ``max_damping``. The
-*modes* are the clusters of physical poles (same tolerances) that appear at ``min_orders``
-orders or more; the *selected order* is the lowest converged one (fit error within 1.5×
+*modes* are the clusters (within ``freq_tol``, one pole per order) of the converged orders'
+in-band poles that are stable in frequency, with ``min_orders`` members or more of which one
+is physical; the *selected order* is the lowest converged one (fit error within 1.5×
 the smallest, or below 1e-3) that holds a pole of every cluster. This is a discrete choice on concrete data: it runs
 eagerly in NumPy (each order a different size) and is not jit-able; the refinement of the
 selected poles (:func:`fdjax.identify_modes`) is.
@@ -203,15 +204,21 @@ def _diagram(freq_hz, frf_abs, s, h, w, omega_ref, *, max_modes, real_poles, rig
     band = (freq_hz[0], freq_hz[-1])  # the whole grid's band, also when s is decimated
     fits = []
     for n in range(1, max_modes + 1):
-        pr, pc = _np_vector_fit(omega, n, real_poles, s, h, w, iterations, rigid_body,
-                                upper_residual)
-        err = _np_fit_error(pr, pc, s, h, w, rigid_body, upper_residual)
+        try:
+            pr, pc = _np_vector_fit(omega, n, real_poles, s, h, w, iterations, rigid_body,
+                                    upper_residual)
+            err = _np_fit_error(pr, pc, s, h, w, rigid_body, upper_residual)
+        except (np.linalg.LinAlgError, FloatingPointError):
+            # a relocation that broke down (a singular system): this order has no poles
+            pr, pc, err = np.zeros(0), np.zeros(0, complex), np.inf
         fits.append((pr * omega_ref, pc * omega_ref, err))
-        # Stop once the last min_orders + 2 orders have all converged (see below): their
-        # stable poles make every cluster the selection can find.
+        # Stop once the last max(min_orders, 2) + 4 orders have all converged (see below):
+        # a weak, heavily damped mode (the drive's 49 Hz mode is 8 % of its FRF) settles a
+        # few orders after the fit has reached the noise floor.
         e = np.array([f[2] for f in fits])
-        last = e[-(min_orders + 2):]
-        if e.size >= min_orders + 2 and np.all((last <= 1.5 * e.min()) | (last <= 1e-3)):
+        n_last = max(min_orders, 2) + 4
+        last = e[-n_last:]
+        if e.size >= n_last and np.all((last <= 1.5 * e.min()) | (last <= 1e-3)):
             break
     orders = np.arange(1, len(fits) + 1)
     n_o = len(fits)
@@ -238,21 +245,25 @@ def _diagram(freq_hz, frf_abs, s, h, w, omega_ref, *, max_modes, real_poles, rig
     converged = (err <= 1.5 * err.min()) | (err <= 1e-3)
     physical = stable & in_band & (zeta < max_damping) & converged[:, None]
 
-    # Clusters of physical poles over the orders, greedy in frequency (one pole per order).
-    idx = np.argwhere(physical)
-    order_f = np.argsort(fhz[physical])
+    # Clusters over the orders, greedy in frequency (one pole per order), of the converged
+    # orders' poles in the band with ζ < max_damping that are stable in frequency; a cluster
+    # is a mode when it has min_orders members and one of them is physical (stable in damping
+    # too). A heavily damped, weak mode under noise (the drive's 49 Hz mode, 8 % of its FRF,
+    # ζ = 0.14, at 1 % noise) keeps its frequency from order to order better than 5 % in ζ.
+    member = stable_f & in_band & (zeta < max_damping) & converged[:, None]
+    idx = np.argwhere(member)
+    order_f = np.argsort(fhz[member])
     clusters: list[list[tuple[int, int]]] = []
     for i, j in idx[order_f]:
         for c in clusters:
             fc = np.median([fhz[a, b] for a, b in c])
-            zc = np.median([zeta[a, b] for a, b in c])
-            if (abs(fhz[i, j] - fc) <= freq_tol * fc and abs(zeta[i, j] - zc) <= damping_tol * zc
-                    and all(a != i for a, _ in c)):
+            if abs(fhz[i, j] - fc) <= freq_tol * fc and all(a != i for a, _ in c):
                 c.append((i, j))
                 break
         else:
             clusters.append([(i, j)])
-    clusters = [c for c in clusters if len(c) >= min(min_orders, int(converged.sum()))]
+    clusters = [c for c in clusters if len(c) >= min(min_orders, int(converged.sum()))
+                and any(physical[a, b] for a, b in c)]
     # A spare pole placed on a mode (a doublet, one pole with a negligible residue) makes a
     # second cluster at the same frequency and damping: keep the larger one.
     clusters.sort(key=len, reverse=True)
@@ -359,7 +370,7 @@ def stabilisation_diagram(
     freq_tol: float = 0.01,
     damping_tol: float = 0.05,
     max_damping: float = 0.5,
-    min_orders: int = 3,
+    min_orders: int = 2,
 ) -> StabilisationDiagram:
     r"""Stabilisation diagram of an FRF: poles fitted at orders 1 … ``max_modes`` pairs.
 
