@@ -88,13 +88,13 @@ follows one physical mode, by frequency proximity and mode-shape correlation (MA
 """
 
 from ._fit import ModalFit as ModalFit
-from ._order import (
-    StabilisationDiagram as StabilisationDiagram,
-    stabilisation_diagram as stabilisation_diagram,
-)
 from ._identify import (
     identify_modes as identify_modes,
     identify_modes_batched as identify_modes_batched,
+)
+from ._order import (
+    StabilisationDiagram as StabilisationDiagram,
+    stabilisation_diagram as stabilisation_diagram,
 )
 from ._tracking import (
     _track as _track,  # the permutations alone, for fdjax._drive._modes' drive-mode tracking

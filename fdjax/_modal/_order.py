@@ -27,9 +27,9 @@ and *physical* when it is stable, inside the band and :math:`\zeta < ` ``max_dam
 *modes* are the clusters (within ``freq_tol``, one pole per order) of the converged orders'
 in-band poles that are stable in frequency, with ``min_orders`` members or more of which one
 is physical; the *selected order* is the lowest converged one (fit error within 1.5×
-the smallest, or below 1e-3) that holds a pole of every cluster. This is a discrete choice on concrete data: it runs
-eagerly in NumPy (each order a different size) and is not jit-able; the refinement of the
-selected poles (:func:`fdjax.identify_modes`) is.
+the smallest, or below 1e-3) that holds a pole of every cluster. This is a discrete choice
+on concrete data: it runs eagerly in NumPy (each order a different size) and is not
+jit-able; the refinement of the selected poles (:func:`fdjax.identify_modes`) is.
 """
 
 from __future__ import annotations
@@ -37,15 +37,13 @@ from __future__ import annotations
 import equinox as eqx
 import numpy as np
 
-from .._checks import frequency_grid
-
 # A zero of σ whose imaginary part is below this fraction of its modulus is a real pole.
 _REAL_TOL = 1e-6
 
 
 def _np_basis(s, pr, pc, rigid_body, upper_residual):
-    """Columns ψ_a = 1/(s^b (s−a)) (real a, b = rigid_body; see ``_linear._basis``), the pair columns of each complex p (as ``_linear._basis``),
-    then s⁻², s⁻¹ and 1 (the fixed ones)."""
+    """Columns ψ_a = 1/(s^b (s−a)) (real a, b = rigid_body), the pair columns of each
+    complex p, then s⁻², s⁻¹ and 1 (the fixed ones); as ``_linear._basis``."""
     cols = [1.0 / (s[:, None] - pr[None, :]) / s[:, None] ** rigid_body]
     g = 1.0 / (s[:, None] - pc[None, :])
     gc = 1.0 / (s[:, None] - np.conj(pc)[None, :])
@@ -395,7 +393,7 @@ def stabilisation_diagram(
     **Returns:** a :class:`StabilisationDiagram`; draw it with
     :func:`fdjax.plots.stabilisation_diagram`.
     """
-    from ._identify import _check_inputs, _prepare
+    from ._identify import _check_inputs
 
     fn = "stabilisation_diagram"
     freq_hz, frf, weights, _, static = _check_inputs(

@@ -108,7 +108,7 @@ def _varpro_jacobian(u, p0, s, h, w, rigid_body, upper_residual):
     def one(hk, wk):
         wc = to_complex(wk)
         a = _ri(wc[:, None] * phi)
-        x, r, ginv = _lstsq_solve(a, _ri(wc * hk))
+        x, r, ginv = _lstsq_solve(a, _ri(wc * hk), n_r > 0)
         res = _cplx(x[0 : 2 * n : 2], x[1 : 2 * n : 2])
         cr = dlam * res[:, None]
         du = wc[:, None, None] * (g2[:, :, None] * cr[None] + gc2[:, :, None] * jnp.conj(cr)[None])
