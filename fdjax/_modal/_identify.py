@@ -269,7 +269,9 @@ def identify_modes(
     refinement fail or lose a mode (a pole leaving the band or reaching ζ ≥ 1), the
     selected order's vector-fitting estimate is returned instead (``num_steps`` 0): a
     reasonable measurement never ends in a solver error. Eager (the order is a discrete
-    choice on concrete data): not inside ``jit``; use ``n_modes`` there.
+    choice on concrete data): not inside ``jit``; there, start from an eager fit, e.g.
+    ``fit = identify_modes(f, H)`` and then, jitted, vmapped or differentiated,
+    ``identify_modes(f, H2, fit.n_modes, real_poles=fit.real_poles.shape[0], initial=fit)``.
 
     **Returns:** a :class:`ModalFit`.
     """
