@@ -248,7 +248,15 @@ def _diagram(freq_hz, frf_abs, s, h, w, omega_ref, *, max_modes, real_poles, rig
     # is a mode when it has min_orders members and one of them is physical (stable in damping
     # too). A heavily damped, weak mode under noise (the drive's 49 Hz mode, 8 % of its FRF,
     # ζ = 0.14, at 1 % noise) keeps its frequency from order to order better than 5 % in ζ.
-    member = stable_f & in_band & (zeta < max_damping) & converged[:, None]
+    # A pole that the next order's stable pole matches starts that stable chain: a member
+    # too (under noise, spare poles of higher orders may split a weak mode again).
+    starts = np.zeros(poles.shape, bool)
+    for i in range(n_o - 1):
+        a, b = ~np.isnan(fhz[i]), ~np.isnan(fhz[i + 1])
+        ok_f, _ = _match(fhz[i, a], zeta[i, a], fhz[i + 1, b], zeta[i + 1, b], freq_tol,
+                         damping_tol)
+        starts[i, a] = ok_f
+    member = (stable_f | starts) & in_band & (zeta < max_damping) & converged[:, None]
     idx = np.argwhere(member)
     order_f = np.argsort(fhz[member])
     clusters: list[list[tuple[int, int]]] = []
@@ -281,14 +289,21 @@ def _diagram(freq_hz, frf_abs, s, h, w, omega_ref, *, max_modes, real_poles, rig
     mode_f, mode_z = mode_f[srt], mode_z[srt]
 
     # The selected order: the lowest converged one with a pole of every cluster.
-    has_all = np.array([all(any(a == i for a, _ in c) for c in clusters) for i in range(n_o)])
+    # (a pole of the cluster stable against the order before: a chain's first pole is a
+    # member but not yet settled)
+    has_all = np.array([all(any(a == i and stable_f[a, b] for a, b in c) for c in clusters)
+                        for i in range(n_o)])
     cand = np.flatnonzero(has_all & converged)
+    if cand.size == 0:
+        has_any = np.array([all(any(a == i for a, _ in c) for c in clusters)
+                            for i in range(n_o)])
+        cand = np.flatnonzero(has_any & converged)
     if cand.size == 0:
         cand = np.flatnonzero(converged)
     sel = int(cand[0])
     chosen = []
     for c in clusters:
-        js = [b for a, b in c if a == sel]
+        js = sorted((b for a, b in c if a == sel), key=lambda b: not stable_f[sel, b])
         chosen.append(poles[sel, js[0]] if js else poles[c[-1][0], c[-1][1]])
     # Its pairs above the band (not modes, but their influence on the band's upper edge is
     # not a constant) stay in the refined model; below the band the real poles and the
