@@ -118,6 +118,8 @@ _EXPORTS = {
         "identify_modes",
         "identify_modes_batched",
         "ModalFit",
+        "stabilisation_diagram",
+        "StabilisationDiagram",
         "track_modes",
     ),
     "._results": (
@@ -266,8 +268,10 @@ if TYPE_CHECKING:
     )
     from ._modal import (
         ModalFit as ModalFit,
+        StabilisationDiagram as StabilisationDiagram,
         identify_modes as identify_modes,
         identify_modes_batched as identify_modes_batched,
+        stabilisation_diagram as stabilisation_diagram,
         track_modes as track_modes,
     )
     from ._results import (

@@ -26,6 +26,7 @@ __all__ = [
     "plot_resonant_phase",
     "plot_peak_filter_effect",
     "plot_tracking",
+    "stabilisation_diagram",
 ]
 
 _OUT_LABEL = {"theta1": r"$\theta_1$", "x2": r"$x_2$", "x3": r"$x_3$"}
@@ -349,5 +350,58 @@ def plot_tracking(runs, *, title, tool=False):
     for ax in axes:
         ax.grid(True, alpha=0.3)
     fig.suptitle(title)
+    fig.tight_layout()
+    return fig
+
+
+def stabilisation_diagram(diagram, *, title="h21 = x2/T1"):
+    """Stabilisation diagram (paper Sec. 3.2): poles over model orders, the FRF behind.
+
+    Frequency on x (log), model order (pole pairs) on y; per pole a marker: ``+`` new or
+    unstable, ``f`` stable in frequency only, ``o`` stable in frequency and damping (filled
+    when also physical: inside the band, ζ below ``max_damping``). Vertical lines mark the
+    modes selected (clusters of physical poles); a star marks the selected order's poles.
+    The FRF magnitude (RMS over channels) is drawn on a twin axis behind.
+
+    Args:
+        diagram: a :class:`fdjax.StabilisationDiagram` from
+            :func:`fdjax.stabilisation_diagram`.
+        title: what the FRF is, for the title.
+    """
+    d = diagram
+    f = np.asarray(d.frequency_hz)
+    orders = np.asarray(d.orders)
+    fig, ax = plt.subplots(figsize=(10, 5.5))
+    ax_h = ax.twinx()
+    ax_h.loglog(d.freq_hz, d.frf_magnitude, color="0.75", lw=1.2, zorder=0)
+    ax_h.set_ylabel("|H| (RMS over channels)", color="0.5")
+    ax.set_zorder(ax_h.get_zorder() + 1)
+    ax.patch.set_visible(False)
+    y = np.broadcast_to(orders[:, None], f.shape)
+    ok = ~np.isnan(f)
+    unstable = ok & ~np.asarray(d.stable_frequency)
+    only_f = ok & np.asarray(d.stable_frequency) & ~np.asarray(d.stable)
+    stable = ok & np.asarray(d.stable) & ~np.asarray(d.physical)
+    phys = np.asarray(d.physical)
+    ax.plot(f[unstable], y[unstable], "+", color="C3", ms=5, label="new / unstable")
+    ax.plot(f[only_f], y[only_f], "x", color="C1", ms=4, label="stable frequency")
+    ax.plot(f[stable], y[stable], "o", mfc="none", color="C0", ms=5,
+            label="stable frequency and damping")
+    ax.plot(f[phys], y[phys], "o", color="C0", ms=5, label="physical (in band, stable)")
+    sel = d.selected_poles
+    if sel is not None and len(sel):
+        ax.plot(np.abs(sel) / (2 * np.pi), np.full(len(sel), orders[d.selected]), "*",
+                color="k", ms=11, label=f"selected (order {orders[d.selected]})")
+    for fm in np.asarray(d.mode_frequency_hz):
+        ax.axvline(fm, color="k", lw=0.5, ls=":")
+    ax.set_xscale("log")
+    ax.set_xlim(d.freq_hz[0], d.freq_hz[-1])
+    ax.set_ylim(0, orders[-1] + 1)
+    ax.set_xlabel("frequency (Hz)")
+    ax.set_ylabel("model order (pole pairs)")
+    ax.set_title(f"Stabilisation diagram of {title}: {d.n_modes} modes "
+                 f"(dotted), selected order {orders[d.selected]}")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8, loc="upper left")
     fig.tight_layout()
     return fig

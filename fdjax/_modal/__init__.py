@@ -12,12 +12,20 @@ is not the phase of any one mode.
 
     H_k(s) = \sum_{r=1}^{n} \Big(\frac{R_{rk}}{s-\lambda_r}
              + \frac{R_{rk}^*}{s-\lambda_r^*}\Big)
+             + \sum_{j=1}^{n_r} \frac{Q_{jk}}{s-a_j}
              + \frac{c_{0k}}{s^2} + \frac{c_{1k}}{s} + d_k ,
 
 poles :math:`\lambda_r = -\zeta_r\omega_r + i\omega_r\sqrt{1-\zeta_r^2}` shared by all
 channels, complex residues (complex modes allowed), a rigid-body double pole at
-:math:`s = 0` (a ball-screw receptance falls as :math:`1/\omega^2`) and a real upper
-residual :math:`d_k` for the modes above the band.
+:math:`s = 0` (a ball-screw receptance falls as :math:`1/\omega^2`), optional real poles
+:math:`a_j < 0` (the damped rigid body :math:`i_{sc}/(s(J_\text{eq}s + c_\text{eq}))` of a
+drive on damped guideways has one at :math:`-c_\text{eq}/J_\text{eq}`; they are not modes)
+and a real upper residual :math:`d_k` for the modes above the band.
+
+**The order.** Without ``n_modes`` a stabilisation diagram (``_order``) chooses it: vector
+fits at increasing orders, poles stable across orders (1 % in frequency, 5 % in damping)
+inside the band with ζ < 0.5 grouped into modes, the lowest converged order holding them all
+selected; its poles start stage 2 below, with a real pole for the rigid body's damping.
 
 **Method, in two stages.**
 
@@ -73,6 +81,7 @@ follows one physical mode, by frequency proximity and mode-shape correlation (MA
 * ``_linear``: the rational basis and the linear least-squares sub-problem for given poles.
 * ``_vector_fit``: stage 1, vector fitting and the backward elimination of spare pairs.
 * ``_solver``: stage 2, the variable-projection residual and the Levenberg–Marquardt solver.
+* ``_order``: :func:`stabilisation_diagram`, the order selection (eager, NumPy).
 * ``_fit``: :class:`ModalFit`, the identified model and its FRF.
 * ``_identify``: :func:`identify_modes` and :func:`identify_modes_batched`.
 * ``_tracking``: :func:`track_modes` (MAC and the assignment over positions).
@@ -82,6 +91,10 @@ from ._fit import ModalFit as ModalFit
 from ._identify import (
     identify_modes as identify_modes,
     identify_modes_batched as identify_modes_batched,
+)
+from ._order import (
+    StabilisationDiagram as StabilisationDiagram,
+    stabilisation_diagram as stabilisation_diagram,
 )
 from ._tracking import (
     _track as _track,  # the permutations alone, for fdjax._drive._modes' drive-mode tracking

@@ -40,7 +40,7 @@ class ModalFit(eqx.Module):
     .. math::
 
         H_k(s) = \sum_{r} \Big(\frac{R_{rk}}{s-\lambda_r} + \frac{R_{rk}^*}{s-\lambda_r^*}\Big)
-                 + \frac{c_{0k}}{s^2} + \frac{c_{1k}}{s} + d_k .
+                 + \sum_j \frac{Q_{jk}}{s-a_j} + \frac{c_{0k}}{s^2} + \frac{c_{1k}}{s} + d_k .
 
     Modes are sorted by natural frequency. Arrays carry extra leading axes when the fit was
     ``jax.vmap``-ed over positions; use ``jax.vmap(lambda m: m.frf(f))(fits)`` then.
@@ -54,6 +54,10 @@ class ModalFit(eqx.Module):
     - ``residues``: complex residues :math:`R_{rk}` (units of H times rad/s), shape
       ``(n_modes, *channel_shape)``.
     - ``poles``: :math:`\lambda_r` in rad/s, upper half plane, shape ``(n_modes,)``.
+    - ``real_poles``: real poles :math:`a_j < 0` in rad/s (the damped rigid body
+      :math:`-c_\text{eq}/J_\text{eq}` of a drive on damped guideways; not modes), shape
+      ``(n_real,)``, ``(0,)`` (or ``None``) when none were fitted.
+    - ``real_residues``: their real residues :math:`Q_{jk}`, shape ``(n_real, *channel_shape)``.
     - ``rigid_body``: :math:`(c_{0k}, c_{1k})`, the coefficients of :math:`1/s^2` and
       :math:`1/s`, shape ``(2, *channel_shape)`` (zero where not fitted).
     - ``upper_residual``: :math:`d_k`, shape ``channel_shape`` (zero where not fitted).
@@ -76,6 +80,8 @@ class ModalFit(eqx.Module):
     fit_error_total: Float[Array, "*batch"]
     num_steps: Int[Array, "*batch"]
     result: optx.RESULTS
+    real_poles: Float[Array, "*batch real"] | None = None
+    real_residues: Float[Array, "*batch real *channel"] | None = None
 
     @property
     def n_modes(self) -> int:
@@ -105,7 +111,12 @@ class ModalFit(eqx.Module):
         c0 = to_complex(self.rigid_body[0])[None]
         c1 = to_complex(self.rigid_body[1])[None]
         d = to_complex(self.upper_residual)[None]
-        return modal + c0 / s_**2 + c1 / s_ + d
+        out = modal + c0 / s_**2 + c1 / s_ + d
+        if self.real_poles is None:
+            return out
+        for a, q in zip(self.real_poles, self.real_residues):
+            out = out + to_complex(q)[None] / (s_ - to_complex(a))
+        return out
 
     def _unbatched(self, name: str) -> None:
         if self.frequency_hz.ndim != 1:

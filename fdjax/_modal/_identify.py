@@ -28,9 +28,22 @@ from jaxtyping import ArrayLike, Complex, Float
 from .._checks import finite, frequency_grid, positive, static_int, to_complex
 from .._sweep import map_positions
 from ._fit import _TWO_PI, ModalFit, _wrap_phase_deg
-from ._linear import _cplx, _linear_fit
-from ._solver import _DEFAULT_SOLVER, _poles_from_params, _scaled_residual, _varpro_jacobian
-from ._vector_fit import _select_modes, _starting_poles, _upper_poles, _vector_fit
+from ._linear import _cplx, _linear_fit, _real_residues
+from ._order import StabilisationDiagram, _diagram_of, _order_options
+from ._solver import (
+    _DEFAULT_SOLVER,
+    _poles_from_params,
+    _real_from_params,
+    _scaled_residual,
+    _varpro_jacobian,
+)
+from ._vector_fit import (
+    _real_start,
+    _select_modes,
+    _starting_poles,
+    _upper_poles,
+    _vector_fit,
+)
 
 # Vector-fitting relocations with the selected n_modes poles, after the over-sized stage.
 _VF_FINAL_ITERATIONS = 5
@@ -41,6 +54,7 @@ class _Model(eqx.Module):
     rigid_body: int = eqx.field(static=True)
     upper_residual: bool = eqx.field(static=True)
     channel_shape: tuple[int, ...] = eqx.field(static=True)
+    real_poles: int = eqx.field(static=True, default=0)
 
 
 # The work is split into three jitted stages so that calls that differ only in the start
@@ -74,7 +88,8 @@ def _start(s, h, w, model: _Model, iterations: int, extra: int):
     """Vector fitting with n_modes + extra pairs, backward elimination to n_modes, and a
     few relocations of the kept poles alone (which settle what the removed ones shared)."""
     rb, ur = model.rigid_body, model.upper_residual
-    p0 = _starting_poles(jnp.imag(s), model.n_modes + extra)
+    p0 = (_starting_poles(jnp.imag(s), model.n_modes + extra),
+          _real_start(jnp.imag(s), model.real_poles))
     p0 = _vector_fit(p0, s, h, w, iterations, rb, ur)
     p0 = _select_modes(p0, s, h, w, model.n_modes, rb, ur)
     return _vector_fit(p0, s, h, w, _VF_FINAL_ITERATIONS, rb, ur)
@@ -84,19 +99,24 @@ def _start(s, h, w, model: _Model, iterations: int, extra: int):
 def _finish(s, h, w, h_scale, omega_ref, p0, solver, model: _Model, refine: bool,
             max_steps: int, throw: bool) -> ModalFit:
     """Refinement from the scaled start poles p0, then the modal quantities in SI units."""
-    n = model.n_modes
+    n, n_r = model.n_modes, model.real_poles
     rb, ur = model.rigid_body, model.upper_residual
+    p0, r0 = p0
     p0 = jax.lax.stop_gradient(_upper_poles(p0, n))
+    r0 = jax.lax.stop_gradient(-jnp.maximum(jnp.abs(r0), 1e-8))
     if refine:
-        args = (p0, s, h, w, rb, ur)
-        u0 = jnp.zeros((n, 2))
+        args = ((p0, r0), s, h, w, rb, ur)
+        u0 = (jnp.zeros((n, 2)), jnp.zeros((n_r,)))
         # Marquardt scaling (as MINPACK's): parameters in units of the start Jacobian's column
         # norms, so that the damping μI of LM is isotropic; a fixed gain on the residual makes
         # μ = 1 (optimistix's first trust-region step) small against JᵀJ, so that the first
         # steps from the (already close) vector-fitting start are Gauss–Newton steps.
-        _, jac0 = _varpro_jacobian(u0, p0, *jax.lax.stop_gradient((s, h, w)), rb, ur)
-        d = jnp.sqrt(jnp.sum(jac0**2, axis=(0, 1)))
-        d = jnp.maximum(d, 1e-12 * jnp.max(d))
+        _, (ju0, jv0) = _varpro_jacobian(u0, (p0, r0), *jax.lax.stop_gradient((s, h, w)), rb,
+                                         ur)
+        du = jnp.sqrt(jnp.sum(ju0**2, axis=(0, 1)))
+        dv = jnp.sqrt(jnp.sum(jv0**2, axis=(0, 1)))
+        top = jnp.maximum(jnp.max(du), jnp.max(dv, initial=0.0))
+        d = (jnp.maximum(du, 1e-12 * top), jnp.maximum(dv, 1e-12 * top))
         sol = optx.least_squares(
             _scaled_residual,
             solver,
@@ -105,23 +125,27 @@ def _finish(s, h, w, h_scale, omega_ref, p0, solver, model: _Model, refine: bool
             max_steps=max_steps,
             throw=throw,
         )
-        poles = _poles_from_params(sol.value / d, p0)
+        poles = _poles_from_params(sol.value[0] / d[0], p0)
+        rpoles = _real_from_params(sol.value[1] / d[1], r0)
         num_steps = sol.stats["num_steps"]
         result = sol.result
     else:
-        poles = p0
+        poles, rpoles = p0, r0
         num_steps = jnp.array(0)
         result = optx.RESULTS.successful
 
     poles = poles[jnp.argsort(jnp.abs(poles))]
-    x, res = _linear_fit(poles, s, h, w, rb, ur)
+    rpoles = jnp.sort(rpoles)[::-1]
+    x, res = _linear_fit(poles, s, h, w, rb, ur, rpoles)
     nc = h.shape[1]
     # Undo the scalings: R̃/(s̃−λ̃) = ω_ref R̃/(s−λ), c̃₀/s̃² = ω_ref² c̃₀/s², c̃₁/s̃ = ω_ref c̃₁/s.
     residues = _cplx(x[0 : 2 * n : 2], x[1 : 2 * n : 2]) * to_complex(h_scale * omega_ref)[None]
-    fixed = x[2 * n :]
+    fixed = x[2 * n + n_r :]
+    real_residues, rigid_rows = _real_residues(x[2 * n : 2 * n + n_r], rpoles, fixed[:rb], rb)
+    real_residues = real_residues * (h_scale * omega_ref)[None]
     rigid = jnp.zeros((2, nc))
     for k, j in enumerate(range(2 - rb, 2)):
-        rigid = rigid.at[j].set(fixed[k] * h_scale * omega_ref ** (2 - j))
+        rigid = rigid.at[j].set(rigid_rows[k] * h_scale * omega_ref ** (2 - j))
     upper = fixed[rb] * h_scale if ur else jnp.zeros(nc)
     poles = poles * to_complex(omega_ref)
 
@@ -139,6 +163,8 @@ def _finish(s, h, w, h_scale, omega_ref, p0, solver, model: _Model, refine: bool
         phase_deg=_wrap_phase_deg(term).reshape(n, *ch),
         residues=residues.reshape(n, *ch),
         poles=poles,
+        real_poles=rpoles * omega_ref,
+        real_residues=real_residues.reshape(n_r, *ch),
         rigid_body=rigid.reshape(2, *ch),
         upper_residual=upper.reshape(ch),
         fit_error=jnp.sqrt(res2 / wh2).reshape(ch),
@@ -151,12 +177,14 @@ def _finish(s, h, w, h_scale, omega_ref, p0, solver, model: _Model, refine: bool
 def identify_modes(
     freq_hz: Float[ArrayLike, " freq"],
     frf: Complex[ArrayLike, " freq *channel"],
-    n_modes: int,
+    n_modes: int | None = None,
     *,
     rigid_body: int = 2,
+    real_poles: int | None = None,
     upper_residual: bool = True,
     weights: Float[ArrayLike, " freq *channel"] | None = None,
-    initial: ModalFit | None = None,
+    initial: ModalFit | StabilisationDiagram | None = None,
+    max_modes: int | None = None,
     refine: bool = True,
     vf_iterations: int = 10,
     vf_extra_modes: int = 3,
@@ -171,7 +199,8 @@ def identify_modes(
     .. math::
 
         H_k(i\omega) \approx \sum_{r=1}^{n} \Big(\frac{R_{rk}}{i\omega-\lambda_r}
-        + \frac{R_{rk}^*}{i\omega-\lambda_r^*}\Big) + \frac{c_{0k}}{(i\omega)^2}
+        + \frac{R_{rk}^*}{i\omega-\lambda_r^*}\Big) + \sum_{j=1}^{n_r}
+        \frac{Q_{jk}}{i\omega-a_j} + \frac{c_{0k}}{(i\omega)^2}
         + \frac{c_{1k}}{i\omega} + d_k
 
     by minimising :math:`\sum_{f,k} |w_{fk}(H^\text{fit}_k - H_k)(f)|^2`: vector fitting for
@@ -193,14 +222,25 @@ def identify_modes(
     - ``freq_hz``: frequency grid in Hz, positive and strictly increasing, shape ``(freq,)``.
     - ``frf``: complex FRF with frequency on the first axis, shape ``(freq,)``,
       ``(freq, n_out)`` or ``(freq, n_out, n_in)``; all channels share the poles.
-    - ``n_modes``: number of complex-conjugate mode pairs in the band.
+    - ``n_modes``: number of complex-conjugate mode pairs in the band; ``None`` (the default)
+      chooses the order from a stabilisation diagram (below).
     - ``rigid_body``: number of poles at :math:`s=0`: 2 fits :math:`c_0/s^2 + c_1/s` (a
       free axis such as a ball-screw drive), 1 only :math:`c_1/s`, 0 none.
+    - ``real_poles``: number of real poles :math:`Q_{jk}/(s-a_j)`, :math:`a_j<0`, in the
+      model (not modes: reported as ``ModalFit.real_poles``). A ball-screw drive on damped
+      guideways has the rigid body :math:`i_{sc}/(s(J_\text{eq}s+c_\text{eq}))`, a pole at
+      0 and one at :math:`-c_\text{eq}/J_\text{eq}` (a few rad/s, below the band), which
+      without a real pole bends a complex pair (mode 1) into it. Default: 1 without
+      ``n_modes``, 0 with it (as before).
     - ``upper_residual``: fit the constant :math:`d_k` for modes above the band.
     - ``weights``: positive weights :math:`w`, broadcastable to ``frf``; default
       :math:`1/|H|` (relative error).
     - ``initial``: a previous ``ModalFit`` (e.g. the neighbouring position) whose poles start
-      the refinement instead of vector fitting.
+      the refinement instead of vector fitting; or a :class:`StabilisationDiagram` of the
+      same data (from :func:`stabilisation_diagram`, with its own tolerances), whose
+      selected poles start it (then ``n_modes`` is None).
+    - ``max_modes``: without ``n_modes``, the highest order (pole pairs) of the diagram
+      (default 16, fewer on short grids; it stops earlier once the fit has converged).
     - ``refine``: ``False`` returns the vector-fitting estimate (residues solved for its
       poles) without the nonlinear refinement.
     - ``vf_iterations``: number of vector-fitting pole relocations (with the spare pairs).
@@ -216,13 +256,38 @@ def identify_modes(
     - ``max_steps``, ``throw``: passed to ``optimistix.least_squares``; with
       ``throw=False`` a failed refinement is reported in ``ModalFit.result``.
 
+    **Without an order** (``n_modes=None``): :func:`stabilisation_diagram` fits orders
+    1, 2, … pole pairs by vector fitting (with ``real_poles`` real poles free to split
+    off), marks a pole *stable* when the previous order has one within 1 % in frequency and
+    5 % in damping ratio and *physical* when also in the band with ζ < 0.5, and takes as
+    modes the clusters of physical poles seen at two orders or more; the lowest converged
+    order holding all of them is selected. Its poles of those modes, its pairs above the
+    band (whose influence on the band's top is not a constant) and its ``real_poles``
+    largest real poles start the variable-projection refinement above, which is then
+    jit/vmap/grad-capable as with ``n_modes``. Returned modes include those pairs above the
+    band (``frequency_hz > freq_hz[-1]``: background, not identified modes). Should the
+    refinement fail or lose a mode (a pole leaving the band or reaching ζ ≥ 1), the
+    selected order's vector-fitting estimate is returned instead (``num_steps`` 0): a
+    reasonable measurement never ends in a solver error. Eager (the order is a discrete
+    choice on concrete data): not inside ``jit``; there, start from an eager fit, e.g.
+    ``fit = identify_modes(f, H)`` and then, jitted, vmapped or differentiated,
+    ``identify_modes(f, H2, fit.n_modes, real_poles=fit.real_poles.shape[0], initial=fit)``.
+
     **Returns:** a :class:`ModalFit`.
     """
+    if n_modes is None or isinstance(initial, StabilisationDiagram):
+        return _identify_auto(
+            freq_hz, frf, n_modes, rigid_body=rigid_body,
+            real_poles=1 if real_poles is None else real_poles, upper_residual=upper_residual,
+            weights=weights, initial=initial, max_modes=max_modes, vf_iterations=vf_iterations,
+            solver=solver, max_steps=max_steps, throw=throw,
+        )
+    real_poles = 0 if real_poles is None else real_poles
     freq_hz, frf, weights, n_modes, static = _check_inputs(
         "identify_modes", 0, freq_hz, frf, n_modes, rigid_body, upper_residual, weights,
-        initial, vf_iterations, vf_extra_modes, max_steps,
+        initial, vf_iterations, vf_extra_modes, max_steps, real_poles,
     )
-    rigid_body, upper_residual, vf_iterations, vf_extra_modes, max_steps = static
+    rigid_body, upper_residual, vf_iterations, vf_extra_modes, max_steps, real_poles = static
     if solver is None:
         solver = _DEFAULT_SOLVER
     model = _Model(
@@ -230,19 +295,23 @@ def identify_modes(
         rigid_body=rigid_body,
         upper_residual=upper_residual,
         channel_shape=tuple(frf.shape[1:]),
+        real_poles=real_poles,
     )
     s, h, w, h_scale, omega_ref = _prepare(freq_hz, frf, weights)
     if initial is None:
         data = jax.lax.stop_gradient((s, h, w))
         p0 = _start(*data, model, vf_iterations, vf_extra_modes)
     else:
-        p0 = jax.lax.stop_gradient(initial.poles.astype(jnp.complex128) / to_complex(omega_ref))
+        r0 = (jnp.zeros((0,)) if initial.real_poles is None
+              else initial.real_poles.astype(jnp.float64) / omega_ref)
+        p0 = jax.lax.stop_gradient(
+            (initial.poles.astype(jnp.complex128) / to_complex(omega_ref), r0))
     return _finish(s, h, w, h_scale, omega_ref, p0, solver, model, bool(refine), max_steps,
                    bool(throw))
 
 
 def _check_inputs(where, n_batch, freq_hz, frf, n_modes, rigid_body, upper_residual, weights,
-                  initial, vf_iterations, vf_extra_modes, max_steps):
+                  initial, vf_iterations, vf_extra_modes, max_steps, real_poles=0):
     """Shared validation of identify_modes(_batched); ``n_batch`` leading position axes."""
     freq_hz = frequency_grid(freq_hz, f"{where}(freq_hz=...)")
     n_freq = freq_hz.shape[0]
@@ -263,7 +332,8 @@ def _check_inputs(where, n_batch, freq_hz, frf, n_modes, rigid_body, upper_resid
     rigid_body = static_int(rigid_body, f"{where}(rigid_body=...)", 0, 2)
     if not isinstance(upper_residual, bool):
         raise ValueError(f"`{where}(upper_residual=...)` must be a bool, got {upper_residual!r}")
-    n_fixed = rigid_body + int(upper_residual)
+    real_poles = static_int(real_poles, f"{where}(real_poles=...)", 0)
+    n_fixed = rigid_body + int(upper_residual) + real_poles
     vf_iterations = static_int(vf_iterations, f"{where}(vf_iterations=...)", 0)
     vf_extra_modes = static_int(vf_extra_modes, f"{where}(vf_extra_modes=...)", 0)
     # Vector fitting solves, per channel, 2·n_freq real equations for
@@ -306,23 +376,32 @@ def _check_inputs(where, n_batch, freq_hz, frf, n_modes, rigid_body, upper_resid
                 f"`{where}(initial=...)` must hold poles of shape {expected} (n_modes = "
                 f"{n_modes}), got poles of shape {initial.poles.shape}"
             )
-    static = (rigid_body, upper_residual, vf_iterations, vf_extra_modes, max_steps)
+        expected = (*frf.shape[:n_batch], real_poles)
+        got = (*frf.shape[:n_batch], 0) if initial.real_poles is None else initial.real_poles.shape
+        if got != expected:
+            raise ValueError(
+                f"`{where}(initial=...)` must hold real poles of shape {expected} (real_poles "
+                f"= {real_poles}), got real poles of shape {got}"
+            )
+    static = (rigid_body, upper_residual, vf_iterations, vf_extra_modes, max_steps, real_poles)
     return freq_hz, frf, weights, n_modes, static
 
 
 def identify_modes_batched(
     freq_hz: Float[ArrayLike, " freq"],
     frf: Complex[ArrayLike, "position freq *channel"],
-    n_modes: int,
+    n_modes: int | None = None,
     *,
     batch_size: int = 1,
     rigid_body: int = 2,
+    real_poles: int | None = None,
     upper_residual: bool = True,
     weights: Float[ArrayLike, "position freq *channel"] | None = None,
     initial: ModalFit | None = None,
     refine: bool = True,
     vf_iterations: int = 10,
     vf_extra_modes: int = 3,
+    max_modes: int | None = None,
     solver: optx.AbstractLeastSquaresSolver | None = None,
     max_steps: int = 256,
     throw: bool = True,
@@ -340,15 +419,30 @@ def identify_modes_batched(
     refinement iterates until its slowest position has converged. On a GPU use a large
     ``batch_size`` (``n_positions`` is the same as ``jax.vmap(identify_modes)``).
     The other arguments are those of :func:`identify_modes`.
+
+    Without ``n_modes`` every position chooses its own order from its stabilisation
+    diagram (:func:`identify_modes` with ``n_modes=None``, eagerly, one position after the
+    other; ``batch_size``, ``initial``, ``refine`` and ``vf_extra_modes`` do not enter) and
+    the modes *inside the band* are returned, padded with NaN to the largest count over the
+    positions (a mode not found at a position); :func:`track_modes` pairs them.
     """
+    if n_modes is None:
+        return _identify_sweep(
+            freq_hz, frf, weights, rigid_body=rigid_body,
+            real_poles=1 if real_poles is None else real_poles, upper_residual=upper_residual,
+            max_modes=max_modes, vf_iterations=vf_iterations, solver=solver,
+            max_steps=max_steps, throw=throw,
+        )
+    real_poles = 0 if real_poles is None else real_poles
     freq_hz, frf, weights, n_modes, static = _check_inputs(
         "identify_modes_batched", 1, freq_hz, frf, n_modes, rigid_body, upper_residual,
-        weights, initial, vf_iterations, vf_extra_modes, max_steps,
+        weights, initial, vf_iterations, vf_extra_modes, max_steps, real_poles,
     )
     batch_size = static_int(batch_size, "identify_modes_batched(batch_size=...)", 1)
-    rigid_body, upper_residual, vf_iterations, vf_extra_modes, max_steps = static
+    rigid_body, upper_residual, vf_iterations, vf_extra_modes, max_steps, real_poles = static
     options = dict(
-        rigid_body=rigid_body, upper_residual=upper_residual, refine=bool(refine),
+        rigid_body=rigid_body, real_poles=real_poles, upper_residual=upper_residual,
+        refine=bool(refine),
         vf_iterations=vf_iterations, vf_extra_modes=vf_extra_modes,
         solver=_DEFAULT_SOLVER if solver is None else solver, max_steps=max_steps,
         throw=bool(throw),
@@ -358,11 +452,136 @@ def identify_modes_batched(
 
 @eqx.filter_jit
 def _identify_positions(freq_hz, frf, weights, initial, n_modes, batch_size, options):
+    n_real = options["real_poles"]
+
     def one(args):
         h, w, init = args
-        return identify_modes(freq_hz, h, n_modes, weights=w, initial=init, **options)
+        fit = identify_modes(freq_hz, h, n_modes, weights=w, initial=init, **options)
+        if n_real == 0:  # lax.map's chunking cannot reshape zero-size outputs
+            fit = eqx.tree_at(lambda m: (m.real_poles, m.real_residues), fit, (None, None),
+                              is_leaf=lambda x: x is None)
+        return fit
 
     # A loop over the positions in chunks of batch_size; batch_size=1 maps without vmap (a
     # batched non-symmetric eig, the vector-fitting zeros, has been seen to dead-lock on
     # XLA:CPU).
-    return map_positions(one, (frf, weights, initial), has_eig=False, batch_size=batch_size)
+    fits = map_positions(one, (frf, weights, initial), has_eig=False, batch_size=batch_size)
+    if n_real == 0:
+        n_pos = frf.shape[0]
+        empty = (jnp.zeros((n_pos, 0)), jnp.zeros((n_pos, 0, *frf.shape[2:])))
+        fits = eqx.tree_at(lambda m: (m.real_poles, m.real_residues), fits, empty,
+                           is_leaf=lambda x: x is None)
+    return fits
+
+
+def _identify_auto(freq_hz, frf, n_modes, *, rigid_body, real_poles, upper_residual, weights,
+                   initial, max_modes, vf_iterations, solver, max_steps, throw) -> ModalFit:
+    """identify_modes without an order: the stabilisation diagram's selected poles, refined.
+
+    The refinement is tried from the selected order's poles; should it fail (or lose a mode:
+    a pole leaving the band or reaching ζ ≥ 1), the diagram's order-selection poles with
+    their linear residues (the vector-fitting estimate, ``refine=False``) are returned: for
+    a reasonable measurement the result is never a solver error.
+    """
+    fn = "identify_modes"
+    if n_modes is not None and not isinstance(initial, StabilisationDiagram):
+        raise ValueError(f"`{fn}(n_modes=...)` must be None here, got {n_modes!r}")
+    if n_modes is not None:
+        raise ValueError(
+            f"`{fn}(initial=...)` is a StabilisationDiagram, which chooses the order itself: "
+            f"`{fn}(n_modes=...)` must be None, got {n_modes!r}"
+        )
+    freq_hz, frf, weights, _, static = _check_inputs(
+        fn, 0, freq_hz, frf, 1, rigid_body, upper_residual, weights, None, vf_iterations, 0,
+        max_steps, real_poles,
+    )
+    rigid_body, upper_residual, vf_iterations, _, max_steps, real_poles = static
+    if isinstance(initial, StabilisationDiagram):
+        diagram = initial
+        if diagram.freq_hz.shape != freq_hz.shape or not np.allclose(diagram.freq_hz,
+                                                                      np.asarray(freq_hz)):
+            raise ValueError(
+                f"`{fn}(initial=...)` is a StabilisationDiagram of another frequency grid "
+                f"({diagram.freq_hz.shape[0]} points, expected freq_hz's {freq_hz.shape[0]})"
+            )
+    else:
+        n_fixed = rigid_body + int(upper_residual) + real_poles
+        opts = _order_options(fn, freq_hz.shape[0], n_fixed, max_modes, vf_iterations, 0.01,
+                              0.05, 0.5, 2)
+        diagram = _diagram_of(freq_hz, frf, weights, real_poles, rigid_body, upper_residual,
+                              opts)
+    if diagram.n_modes == 0:
+        raise ValueError(
+            f"`{fn}(frf=...)` shows no stable physical mode in its stabilisation diagram "
+            f"(orders 1–{int(diagram.orders[-1])}); give `{fn}(n_modes=...)` or inspect "
+            f"`stabilisation_diagram(freq_hz, frf)`"
+        )
+    pairs = np.concatenate([diagram.selected_poles, diagram.background_poles])
+    rpoles = diagram.selected_real_poles
+    if rpoles.size < real_poles:
+        rpoles = np.concatenate([rpoles, -2 * np.pi * float(freq_hz[0]) *
+                                 10.0 ** (-0.5 * np.arange(real_poles - rpoles.size))])
+    model = _Model(n_modes=int(pairs.size), rigid_body=rigid_body, upper_residual=upper_residual,
+                   channel_shape=tuple(frf.shape[1:]), real_poles=int(rpoles.size))
+    solver = _DEFAULT_SOLVER if solver is None else solver
+    s, h, w, h_scale, omega_ref = _prepare(freq_hz, frf, weights)
+    p0 = (jnp.asarray(pairs / float(omega_ref)), jnp.asarray(rpoles / float(omega_ref)))
+    fit = _finish(s, h, w, h_scale, omega_ref, p0, solver, model, True, max_steps, False)
+    band = (float(freq_hz[0]), float(freq_hz[-1]))
+    if not _refined_ok(fit, diagram, band):
+        fit = _finish(s, h, w, h_scale, omega_ref, p0, solver, model, False, max_steps, False)
+    return fit
+
+
+def _refined_ok(fit: ModalFit, diagram: StabilisationDiagram, band) -> bool:
+    """The refinement converged and kept every mode of the diagram: each one's refined pole
+    still in the band, within 5 % of its start frequency, and ζ < 1."""
+    if fit.result != optx.RESULTS.successful:
+        return False
+    f = np.asarray(fit.frequency_hz)
+    z = np.asarray(fit.damping_ratio)
+    if not (np.all(np.isfinite(f)) and np.all(np.isfinite(z))):
+        return False
+    for fm in diagram.mode_frequency_hz:
+        k = np.argmin(np.abs(f - fm))
+        if abs(f[k] - fm) > 0.05 * fm or z[k] >= 1.0 or not band[0] <= f[k] <= band[1]:
+            return False
+    return True
+
+
+def _identify_sweep(freq_hz, frf, weights, *, rigid_body, real_poles, upper_residual,
+                    max_modes, vf_iterations, solver, max_steps, throw) -> ModalFit:
+    """identify_modes_batched without an order: each position's order chosen by its own
+    stabilisation diagram (eagerly, position by position); the modes inside the band are
+    returned, NaN-padded to the largest count over the positions."""
+    fn = "identify_modes_batched"
+    frf = jnp.asarray(frf)
+    if frf.ndim < 2:
+        raise ValueError(f"`{fn}(frf=...)` must have a leading position axis, got shape "
+                         f"{frf.shape}")
+    freq_np = np.asarray(freq_hz, dtype=np.float64)
+    fits = []
+    for p in range(frf.shape[0]):
+        w = None if weights is None else jnp.broadcast_to(jnp.asarray(weights), frf.shape)[p]
+        fit = identify_modes(freq_hz, frf[p], rigid_body=rigid_body, real_poles=real_poles,
+                             upper_residual=upper_residual, weights=w, max_modes=max_modes,
+                             vf_iterations=vf_iterations, solver=solver, max_steps=max_steps,
+                             throw=throw)
+        f = np.asarray(fit.frequency_hz)
+        fits.append((fit, np.flatnonzero((f >= freq_np[0]) & (f <= freq_np[-1]))))
+    n = max(k.size for _, k in fits)
+
+    def take(fit, k):
+        def pad(x):
+            x = np.asarray(x)[k]
+            fill = np.full((n - k.size, *x.shape[1:]), np.nan, dtype=x.dtype)
+            return np.concatenate([x, fill], axis=0)
+
+        return eqx.tree_at(
+            lambda m: (m.frequency_hz, m.damping_ratio, m.phase_deg, m.residues, m.poles),
+            fit, tuple(jnp.asarray(pad(x)) for x in (fit.frequency_hz, fit.damping_ratio,
+                                                      fit.phase_deg, fit.residues, fit.poles)),
+        )
+
+    fits = [take(fit, k) for fit, k in fits]
+    return jax.tree_util.tree_map(lambda *x: jnp.stack(x), *fits)

@@ -69,7 +69,9 @@ def _track(freq, shapes, freq_tol, mac_tol, extrapolate: bool):
             f_pred = f_prev
         df = (f_new[None, :] - f_pred[:, None]) / (freq_tol * f_pred[:, None])
         dmac = (1.0 - _mac(psi_prev, psi_new)) / mac_tol
-        perm = _assign(df**2 + dmac**2)
+        cost = df**2 + dmac**2
+        # a mode missing at a position (NaN, from an order-free sweep) pairs with what is left
+        perm = _assign(jnp.where(jnp.isnan(cost), 1e30, cost))
         f_t = f_new[perm]
         return (f_t, f_prev, psi_new[perm], k + 1), perm
 

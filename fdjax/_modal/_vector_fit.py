@@ -59,13 +59,36 @@ def _upper_poles(z: Array, n_modes: int) -> Array:
     return _cplx(re, jnp.imag(z))
 
 
+def _real_start(omega: Array, n_real: int) -> Array:
+    """Real start poles at −ω_min·10^(−k/2): below the band, where a damped rigid body's
+    pole −c_eq/J_eq lies (a ball screw on damped guideways, a few rad/s)."""
+    k = jnp.arange(n_real, dtype=jnp.float64)
+    return -omega[0] * 10.0 ** (-0.5 * k)
+
+
+def _split_poles(z: Array, n_modes: int, n_real: int):
+    """From the 2n + n_r relocated poles, n_r real ones (those nearest the real axis, made
+    stable and real) and n pairs in the upper half plane (``_upper_poles``)."""
+    if n_real == 0:
+        return _upper_poles(z, n_modes), jnp.zeros((0,), jnp.float64)
+    rel = jnp.abs(jnp.imag(z)) / jnp.maximum(jnp.abs(z), 1e-300)
+    order = jnp.argsort(rel)
+    zr = z[order[:n_real]]
+    rp = -jnp.maximum(jnp.abs(jnp.real(zr)), 1e-8 * jnp.abs(z).max())
+    return _upper_poles(z[order[n_real:]], n_modes), jnp.sort(rp)
+
+
 def _vf_iteration(poles, s, h, w, rigid_body, upper_residual):
+    poles, rpoles = poles
     n2 = 2 * poles.shape[0]
+    n_r = rpoles.shape[0]
     n_freq = s.shape[0]
-    modal, fixed = _basis(s, poles, rigid_body, upper_residual)
+    modal, fixed = _basis(s, poles, rigid_body, upper_residual, rpoles)
     m0 = modal.shape[1] + fixed.shape[1]
-    # Relaxed σ(s) = Σ c̃ⱼ φⱼ(s) + d̃ (Gustavsen 2006, IEEE Trans. Power Delivery 21(3)).
-    sig_basis = jnp.concatenate([modal, jnp.ones((n_freq, 1), jnp.complex128)], axis=1)
+    # Relaxed σ(s) = Σ c̃ⱼ φⱼ(s) + d̃ (Gustavsen 2006, IEEE Trans. Power Delivery 21(3)); the
+    # real poles' columns 1/(s−a) belong to σ too.
+    plain = 1.0 / (s[:, None] - to_complex(rpoles)[None, :])
+    sig_basis = jnp.concatenate([modal, plain, jnp.ones((n_freq, 1), jnp.complex128)], axis=1)
     # σ's columns are identical up to a unimodular factor across channels (|w h| ≈ 1), so
     # one column scaling shared by all channels keeps the stacked σ system balanced.
     sig_scale = jnp.sqrt(jnp.sum(jnp.abs(sig_basis) ** 2, axis=0))
@@ -93,14 +116,16 @@ def _vf_iteration(poles, s, h, w, rigid_body, upper_residual):
     d = c[-1]
     d = jnp.where(jnp.abs(d) < 1e-8, jnp.where(d < 0, -1e-8, 1e-8), d)
     rc = _cplx(c[0:n2:2], c[1:n2:2]) / to_complex(d)
-    a_all = jnp.concatenate([poles, jnp.conj(poles)])
-    r_all = jnp.concatenate([rc, jnp.conj(rc)])
-    ones = jnp.ones((n2, 1), jnp.complex128)
+    # Zeros of σ = d̃(1 + Σ rⱼ/(s−aⱼ)): eigenvalues of diag(a) − 1rᵀ over all poles.
+    a_all = jnp.concatenate([poles, jnp.conj(poles), to_complex(rpoles)])
+    r_all = jnp.concatenate([rc, jnp.conj(rc), to_complex(c[n2 : n2 + n_r] / d)])
+    ones = jnp.ones((n2 + n_r, 1), jnp.complex128)
     zeros = jnp.linalg.eigvals(jnp.diag(a_all) - ones * r_all[None, :])
-    return _upper_poles(zeros, poles.shape[0])
+    return _split_poles(zeros, poles.shape[0], n_r)
 
 
 def _vector_fit(poles, s, h, w, iterations, rigid_body, upper_residual):
+    """``iterations`` relocations of ``poles = (pairs, real_poles)``."""
     def body(_, p):
         return _vf_iteration(p, s, h, w, rigid_body, upper_residual)
 
@@ -110,14 +135,16 @@ def _vector_fit(poles, s, h, w, iterations, rigid_body, upper_residual):
 def _select_modes(poles, s, h, w, n_modes, rigid_body, upper_residual):
     """Keep ``n_modes`` of the over-sized vector fit's pole pairs, by backward elimination.
 
-    Each round removes the pair whose removal increases the weighted least-squares residual
+    ``poles = (pairs, real_poles)``; the real poles are always kept. Each round removes the
+    pair whose removal increases the weighted least-squares residual
     least (pairs outside the band go first), refitting the residues of the others. Poles
     that fit noise, and one pole of a doublet that splits a mode between two poles, cost
     nothing to remove; a mode of the data does. Uses the Gram matrices of the linear
     problem, so each trial is an m×m solve with the removed columns masked out.
     """
+    poles, rpoles = poles
     n_tot = poles.shape[0]
-    modal, fixed = _basis(s, poles, rigid_body, upper_residual)
+    modal, fixed = _basis(s, poles, rigid_body, upper_residual, rpoles)
     phi = jnp.concatenate([modal, fixed], axis=1)
     m = phi.shape[1]
 
@@ -150,4 +177,4 @@ def _select_modes(poles, s, h, w, n_modes, rigid_body, upper_residual):
         return keep.at[jnp.argmin(cost)].set(False)
 
     keep = jax.lax.fori_loop(0, n_tot - n_modes, remove_one, jnp.ones(n_tot, bool))
-    return poles[jnp.argsort(~keep, stable=True)[:n_modes]]
+    return poles[jnp.argsort(~keep, stable=True)[:n_modes]], rpoles
