@@ -86,3 +86,19 @@ def test_save_and_load_are_bit_exact(tmp_path):
     assert back.bounds == sched.bounds and back.network.travel_m == (0.1, 0.7)
     with pytest.raises(FileNotFoundError, match=r"`load_schedule\(path=\.\.\.\)`: no file"):
         fdjax.load_schedule(tmp_path / "missing.eqx")
+
+
+def test_filter_table_is_the_schedule_in_drive_units():
+    net = fdjax.ATANetwork((0.1, 0.7), width=4, key=jax.random.PRNGKey(4))
+    sched = fdjax.ScheduledLoop(fdjax.DoubleLoop(), net, BOUNDS)
+    table = sched.filter_table(POSITIONS)
+    assert list(table) == ["position_mm", "peak_K", "peak_freq_hz", "peak_xi", "peak_phi_deg",
+                           "notch_freq_hz", "notch_zeta_n", "notch_zeta_d"]
+    assert all(len(v) == 6 for v in table.values())
+    np.testing.assert_allclose(table["position_mm"], POSITIONS * 1e3, rtol=1e-15)
+    m = sched.controller(POSITIONS[3]).mcm
+    np.testing.assert_allclose(table["peak_freq_hz"][3], float(m.peak.omega[0]) / (2 * np.pi),
+                               rtol=1e-13)
+    np.testing.assert_allclose(table["notch_zeta_n"][3], float(m.notch.zeta_n[0]), rtol=1e-13)
+    assert all(z_n < z_d for z_n, z_d in zip(table["notch_zeta_n"], table["notch_zeta_d"]))
+    json.dumps(table)  # plain floats

@@ -107,6 +107,29 @@ class ScheduledLoop(AbstractController):
         mcm = self.bounds.to_mcm(self.network(position_m))
         return eqx.tree_at(lambda c: c.mcm, self.loop, mcm)
 
+    def filter_table(self, positions_m: Float[ArrayLike, " n"]) -> dict[str, list[float]]:
+        """The scheduled filters at ``positions_m`` (m), one row per position, in the units a
+        drive's parameter list uses: ``position_mm``; the peak filter's ``peak_K``,
+        ``peak_freq_hz``, ``peak_xi``, ``peak_phi_deg``; the notch's ``notch_freq_hz``,
+        ``notch_zeta_n``, ``notch_zeta_d``.  Columns of a CSV or a JSON table."""
+        y = jnp.atleast_1d(jnp.asarray(positions_m, jnp.float64))
+        if y.ndim != 1:
+            raise ValueError(f"`ScheduledLoop.filter_table(positions_m=...)` must be 1-D, got "
+                             f"shape {y.shape}")
+        mcms = jax.vmap(lambda p: self.bounds.to_mcm(self.network(p)))(y)
+        pk, nt = mcms.peak, mcms.notch
+        cols = {
+            "position_mm": y * 1e3,
+            "peak_K": pk.K[:, 0],
+            "peak_freq_hz": pk.omega[:, 0] / (2 * math.pi),
+            "peak_xi": pk.xi[:, 0],
+            "peak_phi_deg": jnp.degrees(pk.phi[:, 0]),
+            "notch_freq_hz": nt.omega[:, 0] / (2 * math.pi),
+            "notch_zeta_n": nt.zeta_n[:, 0],
+            "notch_zeta_d": nt.zeta_d[:, 0],
+        }
+        return {k: [float(v) for v in jnp.asarray(c)] for k, c in cols.items()}
+
     def law(self, position_m) -> Law:
         """The law of :meth:`controller` at the table position."""
         if position_m is None:
