@@ -201,3 +201,15 @@ def test_objective_is_finite_penalising_and_differentiable():
         fd = (float(J(theta0.at[i].add(h), 0.3).total)
               - float(J(theta0.at[i].add(-h), 0.3).total)) / (2 * h)
         np.testing.assert_allclose(g[i], fd, rtol=1e-4, atol=1e-6 * np.max(np.abs(g)))
+
+
+def test_objective_names_itself_in_errors():
+    ref = fdjax.reciprocating(stroke=1e-3, v_max=0.05, a_max=2.0, j_max=400.0, cycles=1)
+    obj = fdjax.Objective(ref, np.geomspace(5.0, 3900.0, 64))
+    with pytest.raises(ValueError, match=r"`Objective\(position_m=\.\.\.\)` must be inside "
+                                         r"the travel \[0.1, 0.7\] m, got 115"):
+        obj(fdjax.DoubleLoop(), fdjax.reference_drive(), 115.0)  # mm typed as m
+    with pytest.raises(TypeError, match=r"`Objective\(drive=\.\.\.\)` must be an fdjax"):
+        obj(fdjax.DoubleLoop(), None, 0.3)
+    with pytest.raises(ValueError, match=r"`Objective\(output=\.\.\.\)` must be 'scale' or"):
+        fdjax.Objective(ref, np.geomspace(5.0, 3900.0, 64), output="x3")

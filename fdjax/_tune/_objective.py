@@ -123,6 +123,10 @@ class Objective(eqx.Module):
         if not isinstance(controller, AbstractController):
             raise TypeError(f"`Objective(controller=...)` must be an fdjax controller, got "
                             f"{type(controller).__name__}")
+        if not isinstance(drive, BallScrewDrive):
+            raise TypeError(f"`Objective(drive=...)` must be an fdjax.BallScrewDrive, got "
+                            f"{type(drive).__name__}")
+        position_m = drive._check_travel(position_m, "Objective")
         plant = state_space(drive, position_m, twin=self.twin)
         sim = simulate(controller, plant, self.reference, SampledData(), servo=self.servo,
                        duration=self.duration, error_bound=self.error_bound_m, throw=False)
