@@ -13,6 +13,7 @@ model has the same size on grids of one length.
 import matplotlib
 import numpy as np
 import pytest
+from test_modal import pair  # a mode's pole and residue from its frequency, ζ, phase, size
 
 import fdjax
 from fdjax import cli, plots
@@ -28,17 +29,6 @@ GAINS = np.array([0.5, 0.3, 0.4, 0.02, 0.05])
 A_RIGID = -7.0  # rad/s: −c_eq/J_eq of the reference drive is −7.04 rad/s
 C1 = 9e-3  # x2/T1 → i_sc/(s(J s + c)) = C1/s − C1/(s − a) (units of H·rad/s)
 D = 1e-10
-
-
-def pair(f_n, zeta, phase_deg, magnitude):
-    """Pole and residue of a mode whose term at ω_n has the given phase and magnitude (as
-    in test_modal.py)."""
-    wn = 2 * np.pi * f_n
-    lam = wn * (-zeta + 1j * np.sqrt(1 - zeta**2))
-    num = magnitude * np.exp(1j * np.deg2rad(phase_deg + 90))
-    a = num.imag / (2 * wn)
-    b = (a * -lam.real - num.real / 2) / lam.imag
-    return lam, a + 1j * b
 
 
 def synthetic_frf(freq):
