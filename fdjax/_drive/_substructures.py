@@ -64,6 +64,8 @@ class Screw(eqx.Module):
     Attributes:
         length: distance between the drive-end and free-end bearings L (m).
         diameter: effective (root) diameter d (m) for both EA and GJ.
+        bore_diameter: diameter d_i of a hollow screw's bore (m), 0 ≤ d_i < d (default 0:
+            solid).  Large screws are often bored, for coolant or for weight.
         lead: lead p (m/rev); the transmission ratio is i_sc = p / 2π (m/rad).
         youngs_modulus: E (Pa).  shear_modulus: G (Pa).  density: ρ (kg/m³).
         retardation: Kelvin–Voigt retardation time β (s) of the screw material.
@@ -80,8 +82,19 @@ class Screw(eqx.Module):
         "Screw(shear_modulus=...)", default=7.93e10
     )
     density: Float[Array, ""] = _checks.positive_field("Screw(density=...)", default=7850.0)
+    bore_diameter: Float[Array, ""] = _checks.nonnegative_field(
+        "Screw(bore_diameter=...)", default=0.0
+    )
     retardation: Float[Array, ""] = _checks.nonnegative_field("Screw(retardation=...)", default=0.0)
     loss_factor: Float[Array, ""] = _checks.nonnegative_field("Screw(loss_factor=...)", default=0.0)
+
+    def __check_init__(self):
+        d, di = self.diameter, self.bore_diameter
+        if _checks.is_concrete(d) and _checks.is_concrete(di) and not float(di) < float(d):
+            raise ValueError(
+                f"`Screw(bore_diameter=...)` must be smaller than the diameter "
+                f"{float(d):.6g} m, got {float(di):.6g}"
+            )
 
     @property
     def ratio(self) -> Float[Array, ""]:
@@ -89,31 +102,23 @@ class Screw(eqx.Module):
         return self.lead / (2 * jnp.pi)
 
     def section(self) -> tuple[Array, Array, Array, Array]:
-        """``(GJ, ρJ, EA, ρA)`` of the solid circular section: J = πd⁴/32, A = πd²/4."""
-        area = jnp.pi * self.diameter**2 / 4
-        polar = jnp.pi * self.diameter**4 / 32
+        """``(GJ, ρJ, EA, ρA)`` of the (hollow) circular section:
+        J = π(d⁴ − d_i⁴)/32, A = π(d² − d_i²)/4."""
+        d, di = self.diameter, self.bore_diameter
+        area = jnp.pi * (d**2 - di**2) / 4
+        polar = jnp.pi * (d**4 - di**4) / 32
         return (self.shear_modulus * polar, self.density * polar,
                 self.youngs_modulus * area, self.density * area)
 
     def torsion(self) -> Rod:
-        return Rod.torsion(
-            diameter=self.diameter,
-            length=self.length,
-            shear_modulus=self.shear_modulus,
-            density=self.density,
-            loss_factor=self.loss_factor,
-            retardation=self.retardation,
-        )
+        """The screw in torsion: a :class:`fdjax.Rod` with Z = GJ, μ = ρJ."""
+        gj, rho_j, _, _ = self.section()
+        return Rod(self.length, gj, rho_j, self.loss_factor, self.retardation)
 
     def axial(self) -> Rod:
-        return Rod.axial(
-            diameter=self.diameter,
-            length=self.length,
-            youngs_modulus=self.youngs_modulus,
-            density=self.density,
-            loss_factor=self.loss_factor,
-            retardation=self.retardation,
-        )
+        """The screw in axial motion: a :class:`fdjax.Rod` with Z = EA, μ = ρA."""
+        _, _, ea, rho_a = self.section()
+        return Rod(self.length, ea, rho_a, self.loss_factor, self.retardation)
 
 
 class _LineSubsystem(eqx.Module):
