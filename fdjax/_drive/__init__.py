@@ -1,7 +1,8 @@
 """The ball-screw feed drive, in pipeline order (each file imports only the ones above it):
 
 * ``_rods`` — exact dynamic stiffness of uniform rods and shafts (wave solution).
-* ``_substructures`` — the screw, the subsystems R, A, S and the nut joint (paper Figs. 8–9).
+* ``_substructures`` — the screw, the subsystems R, A, S (with an optional table) and the nut
+  joint (paper Figs. 8–9).
 * ``_model`` — :class:`BallScrewDrive`: the substructures coupled at the nut, H_M (Eq. 2).
 * ``_reference`` — :func:`reference_drive`: the built-in drive's data, calibrated to Table 1.
 * ``_twin`` — the finite-element time-domain twin and its truncated modal state space.
@@ -27,6 +28,7 @@ from ._substructures import (
     NutJoint as NutJoint,
     Rotary as Rotary,
     Screw as Screw,
+    Table as Table,
 )
 from ._twin import (
     DEFAULT_BAND_HZ as DEFAULT_BAND_HZ,

@@ -13,6 +13,10 @@ linear scale; tool point).  The nut joint deforms by ``Δ = x_n − u_l − i_sc
 whose bracket is the one in the paper's Eq. (1); the typeset Eq. (2) is garbled and is replaced by
 this derivation.  ``H_M`` is the block of ``Y_c`` with outputs (θ1, x2, x3) and inputs (T1 at θ1,
 F3 at x3), i.e. a 3×2 matrix per (position, frequency).
+
+A :class:`fdjax.Table` on the carriage changes only the carriage's receptance h_S over
+(x_n, x2, x3): the tool point x3 and F3 move to the table, and the table's own coordinate stays
+inside h_S (:class:`fdjax.Carriage`); the coupling at the nut is the same.
 """
 
 from __future__ import annotations
@@ -43,7 +47,8 @@ class BallScrewDrive(eqx.Module):
         screw: the ball screw (length, diameter, lead, material).
         rotary: subsystem R (motor rotor, coupling, rotational supports).
         axial: subsystem A (thrust bearings).
-        carriage: subsystem S (carriage axial + pitch; nut, scale and tool heights).
+        carriage: subsystem S (carriage axial + pitch; nut, scale and tool heights; an
+            optional :class:`fdjax.Table` carrying the tool point).
         nut: the screw–nut joint (k_ja, c_ja).
         nut_offset: l0 (m): the nut sits at l = Y_table + l0 from the drive-end bearing.
         travel_m: (min, max) table position Y_table (m), static.
@@ -83,25 +88,29 @@ class BallScrewDrive(eqx.Module):
     def reflected_inertia(self) -> Float[Array, ""]:
         r"""Inertia of the rigid drive reflected to the motor (kg·m²).
 
-            J_eq = J_m + J_de + J_fe + ρJ·L + m·i_sc²
+            J_eq = J_m + J_de + J_fe + ρJ·L + (m + m_t)·i_sc²
 
         (rotor with motor-side hub, screw-side and free-end hubs, the screw in torsion, and the
-        carriage through the screw ratio): the rigid-body asymptote x2/T1 → i_sc/(−ω²J_eq +
-        iωc_eq) far below the first mode, and the acceleration feed-forward of a rigid drive,
-        k_ffa = J_eq/(k_motor·i_sc).
+        carriage with its table, m_t = 0 without one, through the screw ratio): the rigid-body
+        asymptote x2/T1 → i_sc/(−ω²J_eq + iωc_eq) far below the first mode, and the
+        acceleration feed-forward of a rigid drive, k_ffa = J_eq/(k_motor·i_sc).
         """
         r = self.rotary
         rho_j = self.screw.section()[1]
-        return (r.motor_inertia + r.drive_end_inertia + r.free_end_inertia
-                + rho_j * self.screw.length + self.carriage.mass * self.screw.ratio**2)
+        J = (r.motor_inertia + r.drive_end_inertia + r.free_end_inertia
+             + rho_j * self.screw.length + self.carriage.mass * self.screw.ratio**2)
+        if self.carriage.table is not None:
+            J = J + self.carriage.table.mass * self.screw.ratio**2
+        return J
 
     def reflected_damping(self) -> Float[Array, ""]:
         r"""Viscous damping of the rigid drive reflected to the motor (N·m·s/rad).
 
             c_eq = c_m + c_de + c_fe + c_x·i_sc²
 
-        (motor and bearing friction, guideway damping through the screw ratio); the velocity
-        feed-forward of a rigid drive is k_ffv = c_eq/(k_motor·i_sc).
+        (motor and bearing friction, guideway damping through the screw ratio; a
+        :class:`fdjax.Table`'s damper is internal and adds nothing); the velocity feed-forward
+        of a rigid drive is k_ffv = c_eq/(k_motor·i_sc).
         """
         r = self.rotary
         return (r.motor_damping + r.drive_end_damping + r.free_end_damping
@@ -174,26 +183,28 @@ class BallScrewDrive(eqx.Module):
         l = jnp.asarray(position_m) + self.nut_offset
         dr, er = self.rotary._line(self.screw.torsion(), l, omega)
         da, ea = self.axial._line(self.screw.axial(), l, omega)
-        axial, pitch = self.carriage._modal_stiffness(omega)
-        shape = jnp.broadcast_shapes(*[jnp.shape(x) for x in (*dr, *er, *da, *ea, axial, pitch)])
-        Ds = jnp.zeros((*shape, 2, 2), jnp.complex128)
-        Ds = Ds.at[..., 0, 0].set(jnp.broadcast_to(axial, shape))
-        Ds = Ds.at[..., 1, 1].set(jnp.broadcast_to(pitch, shape))
-        D = jnp.zeros((*shape, 9, 9), jnp.complex128)
+        c = self.carriage
+        d = c.n_dofs
+        n = 7 + d  # θ1, θ(0), θ(l), θ(L), u(0), u(l), u(L), then the carriage's (x_c, ψ[, x_t])
+        Ds = c._dynamic_stiffness(omega)
+        shape = jnp.broadcast_shapes(*[jnp.shape(x) for x in (*dr, *er, *da, *ea)],
+                                     Ds.shape[:-2])
+        D = jnp.zeros((*shape, n, n), jnp.complex128)
         D = D.at[..., :4, :4].set(jnp.broadcast_to(tridiagonal_dense(dr, er), (*shape, 4, 4)))
         D = D.at[..., 4:7, 4:7].set(jnp.broadcast_to(tridiagonal_dense(da, ea), (*shape, 3, 3)))
-        D = D.at[..., 7:, 7:].set(Ds)
-        c = self.carriage
+        D = D.at[..., 7:, 7:].set(jnp.broadcast_to(Ds, (*shape, d, d)))
         zero, one = jnp.zeros(()), jnp.ones(())
-        b = jnp.stack(
-            [zero, zero, -self.screw.ratio, zero, zero, -one, zero, one, c.nut_height]
+        points = c._points()  # rows nut, scale, tool over the carriage's coordinates
+        b = jnp.concatenate(
+            [jnp.stack([zero, zero, -self.screw.ratio, zero, zero, -one, zero]), points[0]]
         ).astype(jnp.complex128)
         kj = jnp.broadcast_to(self.nut._dynamic_stiffness(omega), shape)
         D = D + kj[..., None, None] * (b[:, None] * b[None, :])
-        e = jnp.eye(9, dtype=jnp.float64)
-        outputs = jnp.stack([e[0], e[7] + c.scale_height * e[8], e[7] + c.tool_height * e[8]])
-        inputs = jnp.stack([e[0], e[7] + c.tool_height * e[8]], -1).astype(jnp.complex128)
-        X = jnp.linalg.solve(D, jnp.broadcast_to(inputs, (*shape, 9, 2)))
+        e = jnp.eye(n, dtype=jnp.float64)[0]
+        rows = jnp.concatenate([jnp.zeros((3, 7)), points], axis=1)
+        outputs = jnp.stack([e, rows[1], rows[2]])
+        inputs = jnp.stack([e, rows[2]], -1).astype(jnp.complex128)
+        X = jnp.linalg.solve(D, jnp.broadcast_to(inputs, (*shape, n, 2)))
         return jnp.einsum("oi,...ij->...oj", outputs.astype(jnp.complex128), X)
 
     # ------------------------------------------------------------------ public, checked
@@ -231,9 +242,13 @@ class BallScrewDrive(eqx.Module):
     def receptance_direct(self, position_m, omega) -> Complex[Array, "... 3 2"]:
         """H_M by assembling the whole drive as one dynamic stiffness (no coupling step).
 
-        DOFs (θ1, θ(0), θ(l), θ(L), u(0), u(l), u(L), x_c, ψ); the nut joint adds
-        ``(k_ja + iωc_ja) bᵀb`` with ``b = [0, 0, −i_sc, 0, 0, −1, 0, 1, h_n]``.  Independent of
-        the LM-FBS algebra, it proves the coupling's signs.
+        DOFs (θ1, θ(0), θ(l), θ(L), u(0), u(l), u(L), x_c, ψ), and x_t last with a
+        :class:`fdjax.Table` on the carriage (its connection ``(k_t + iωc_t) b_t b_tᵀ``,
+        ``b_t = (−1, −h_t, 1)`` on (x_c, ψ, x_t)); the nut joint adds ``(k_ja + iωc_ja) bᵀb``
+        with ``b = [0, 0, −i_sc, 0, 0, −1, 0, 1, h_n(, 0)]``.  The tool point is
+        ``x_c + h_3 ψ``, or ``x_t + (h_3 − h_t) ψ`` on the table.  Independent of the LM-FBS
+        algebra (and of the carriage's closed-form receptance), it proves the coupling's
+        signs.
         """
         fn = "BallScrewDrive.receptance_direct"
         out = self._receptance_direct(*self._check_point(position_m, omega, fn))

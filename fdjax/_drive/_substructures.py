@@ -5,6 +5,8 @@
 * :class:`Axial` (A) — screw axial vibration with its thrust bearing(s).
 * :class:`Carriage` (S) — carriage axial motion and pitch on the guideway joints, with the nut,
   the linear scale (coordinate 2) and the tool point (coordinate 3) at their heights.
+* :class:`Table` — an optional second sliding body on the carriage (e.g. the X table on a Y
+  saddle), compliant in the drive's direction, which carries the tool point / workpiece.
 * :class:`NutJoint` — the screw–nut joint, axial stiffness k_ja and damping c_ja.
 
 Each substructure gives its exact receptances at the coordinates the coupling needs, and its
@@ -18,10 +20,10 @@ import jax.numpy as jnp
 from jaxtyping import Array, Complex, Float
 
 from .. import _checks
-from .._linalg import recip
+from .._linalg import add, inv_entries, mul, recip
 from ._rods import Rod, Support, line_stiffness, spring_stiffness, tridiagonal_receptance
 
-__all__ = ["Screw", "Rotary", "Axial", "Carriage", "NutJoint"]
+__all__ = ["Screw", "Rotary", "Axial", "Table", "Carriage", "NutJoint"]
 
 
 _cplx = _checks.to_complex
@@ -251,20 +253,70 @@ class Axial(_LineSubsystem):
         return tridiagonal_receptance(diag, off, [(1, 1)])[0]
 
 
+class Table(eqx.Module):
+    r"""A second sliding body on the carriage, compliant in the drive's direction.
+
+    On a Y axis the X table (with the workpiece) rides on the saddle on its own guideways; in Y
+    it is held by the lateral stiffness of the X guideways and of the X screw's bearing.  It
+    moves x_t along the drive and pitches with the saddle (its pitch inertia is part of
+    :attr:`Carriage.pitch_inertia`); the connection acts at height h_t above the saddle's pitch
+    centre, where the saddle moves x_c + h_t ψ, and deforms by
+
+        δ = x_t − (x_c + h_t ψ),     force (k_t + iωc_t) δ,
+
+    i.e. it adds ``(k_t + iωc_t) b bᵀ`` to the carriage's dynamic stiffness over (x_c, ψ, x_t)
+    with ``b = (−1, −h_t, 1)``.  A table point at height h moves x = x_t + (h − h_t) ψ.
+
+    Attributes:
+        mass: m_t, the table with the workpiece (kg).
+        stiffness: k_t of the connection to the saddle in the drive's direction (N/m).
+        damping: c_t of the connection (N·s/m); internal: it adds nothing to the drive's
+            rigid-body damping.
+        height: h_t, height of the connection above the saddle's pitch centre (m).
+    """
+
+    mass: Float[Array, ""] = _checks.positive_field("Table(mass=...)")
+    stiffness: Float[Array, ""] = _checks.positive_field("Table(stiffness=...)")
+    damping: Float[Array, ""] = _checks.nonnegative_field("Table(damping=...)", default=0.0)
+    height: Float[Array, ""] = _checks.finite_field("Table(height=...)", default=0.0)
+
+
 class Carriage(eqx.Module):
-    """Subsystem S: the carriage (table) as a rigid body in axial motion x_c and pitch ψ.
+    r"""Subsystem S: the carriage (table) as a rigid body in axial motion x_c and pitch ψ.
 
     A point at height h above the pitch centre moves x = x_c + h ψ, so the receptance between
     points a and b is ``h_ab = 1/(−ω²m + iωc_x) + h_a h_b /(k_ψ − ω²J + iωc_ψ)``.
 
+    **With a** :class:`Table` (``table=Table(...)``) the carriage is the saddle and a second
+    body x_t rides on it; the nut and the linear scale stay on the saddle,
+    ``x_n = x_c + h_n ψ``, ``x_2 = x_c + h_s ψ``, while the tool point and its force F3 move to
+    the table, ``x_3 = x_t + (h_3 − h_t) ψ``.  Over (x_c, ψ, x_t) the dynamic stiffness is
+
+        D = diag(−ω²m + iωc_x, k_ψ − ω²J + iωc_ψ, −ω²m_t) + (k_t + iωc_t) b bᵀ,
+        b = (−1, −h_t, 1),
+
+    and ``h_ab = a_aᵀ D⁻¹ a_b`` with ``a_n = (1, h_n, 0)``, ``a_2 = (1, h_s, 0)``,
+    ``a_3 = (0, h_3 − h_t, 1)``.  :meth:`receptance` solves it in the coordinates
+    (x_c, ψ, δ), δ = x_t − x_c − h_t ψ, where the connection is diagonal,
+
+        D_δ = diag(−ω²m + iωc_x, k_ψ − ω²J + iωc_ψ, k_t + iωc_t) − ω²m_t c cᵀ,  c = (1, h_t, 1),
+
+    (the table's inertia sees x_t = cᵀ(x_c, ψ, δ)), with the points ``a_n = (1, h_n, 0)``,
+    ``a_2 = (1, h_s, 0)``, ``a_3 = (1, h_3, 1)``: a stiff table (k_t → ∞) then forms no
+    difference of large numbers and tends to a carriage of mass m + m_t, mass coupling
+    m_t h_t and pitch inertia J + m_t h_t².  Without a table (``table=None``) the model is the
+    rigid body above, unchanged.
+
     Attributes:
-        mass: carriage with table and workpiece (kg).
-        pitch_inertia: about the pitch centre (kg·m²).
+        mass: carriage with table and workpiece (kg); the saddle alone when ``table`` is given.
+        pitch_inertia: about the pitch centre (kg·m²), the table's included.
         axial_damping: equivalent viscous friction of the guideways (N·s/m).
         pitch_stiffness: k_ψ of the guideway blocks (N·m/rad) ≈ k_block · Σ (block offset)².
         pitch_damping: c_ψ (N·m·s/rad).
         nut_height, scale_height, tool_height: heights of the nut axis, the linear scale
             (coordinate 2) and the tool point (coordinate 3) above the pitch centre (m).
+        table: an optional :class:`Table` on the carriage, carrying the tool point; ``None``
+            (default) for a single rigid body.  Its presence is structural (static shapes).
     """
 
     mass: Float[Array, ""] = _checks.positive_field("Carriage(mass=...)")
@@ -279,14 +331,28 @@ class Carriage(eqx.Module):
     nut_height: Float[Array, ""] = _checks.finite_field("Carriage(nut_height=...)", default=0.0)
     scale_height: Float[Array, ""] = _checks.finite_field("Carriage(scale_height=...)", default=0.0)
     tool_height: Float[Array, ""] = _checks.finite_field("Carriage(tool_height=...)", default=0.0)
+    table: Table | None = None
+
+    def __check_init__(self):
+        if self.table is not None and not isinstance(self.table, Table):
+            raise ValueError(
+                f"`Carriage(table=...)` must be a fdjax.Table or None, got "
+                f"{type(self.table).__name__}"
+            )
 
     @property
     def heights(self) -> Float[Array, 3]:
         """Heights of (nut, scale, tool)."""
         return jnp.stack([self.nut_height, self.scale_height, self.tool_height])
 
+    @property
+    def n_dofs(self) -> int:
+        """Rigid-body coordinates: 2 (x_c, ψ), or 3 (x_c, ψ, x_t) with a table (static)."""
+        return 2 if self.table is None else 3
+
     def modal_stiffness(self, omega):
-        """Dynamic stiffness of the axial and pitch coordinates (diagonal)."""
+        """Dynamic stiffness of the axial and pitch coordinates (diagonal) of the carriage
+        (the saddle alone when it carries a table)."""
         return self._modal_stiffness(_omega(omega, "Carriage.modal_stiffness(omega=...)"))
 
     def receptance(self, omega) -> list[list[Complex[Array, ...]]]:
@@ -304,11 +370,60 @@ class Carriage(eqx.Module):
         )
         return axial, pitch
 
+    def _dynamic_stiffness(self, omega) -> Complex[Array, "... d d"]:
+        """Dense dynamic stiffness over (x_c, ψ) or, with a table, (x_c, ψ, x_t)."""
+        axial, pitch = self._modal_stiffness(omega)
+        diag = [axial, pitch]
+        if self.table is not None:
+            diag.append(-_cplx(omega) ** 2 * _cplx(self.table.mass))
+        shape = jnp.broadcast_shapes(*[jnp.shape(x) for x in diag])
+        d = len(diag)
+        D = jnp.zeros((*shape, d, d), jnp.complex128)
+        for i, x in enumerate(diag):
+            D = D.at[..., i, i].set(jnp.broadcast_to(x, shape))
+        if self.table is not None:
+            t = self.table
+            b = _cplx(jnp.stack([-jnp.ones(()), -t.height, jnp.ones(())]))
+            kt = spring_stiffness(t.stiffness, t.damping, omega)
+            D = D + kt[..., None, None] * (b[:, None] * b[None, :])
+        return D
+
+    def _points(self) -> Float[Array, "3 d"]:
+        """Rows ``a_n, a_2, a_3``: the displacements of the nut, the scale and the tool point
+        over the carriage's coordinates (x_c, ψ) or (x_c, ψ, x_t), and the forces there."""
+        one, zero = jnp.ones(()), jnp.zeros(())
+        if self.table is None:
+            return jnp.stack([jnp.stack([one, h]) for h in
+                              (self.nut_height, self.scale_height, self.tool_height)])
+        r = self.tool_height - self.table.height
+        return jnp.stack([jnp.stack([one, self.nut_height, zero]),
+                          jnp.stack([one, self.scale_height, zero]),
+                          jnp.stack([zero, r, one])])
+
     def _receptance(self, omega):
         axial, pitch = self._modal_stiffness(omega)
-        ya, yp = recip(axial), recip(pitch)
         h = [_cplx(x) for x in (self.nut_height, self.scale_height, self.tool_height)]
-        return [[ya + yp * (h[i] * h[j]) for j in range(3)] for i in range(3)]
+        if self.table is None:
+            ya, yp = recip(axial), recip(pitch)
+            return [[ya + yp * (h[i] * h[j]) for j in range(3)] for i in range(3)]
+        # (x_c, ψ, δ) coordinates (class docstring): the connection is diagonal, the table's
+        # inertia a rank-one term; a 3×3 adjugate inverse with one division, by det D_δ.
+        t = self.table
+        kt = spring_stiffness(t.stiffness, t.damping, omega)
+        mt = -_cplx(omega) ** 2 * _cplx(t.mass)
+        ht = _cplx(t.height)
+        c = [1.0, ht, 1.0]
+        k = [axial, pitch, kt]
+        D = [[add(k[i] if i == j else 0, mt * (c[i] * c[j])) for j in range(3)]
+             for i in range(3)]
+        Y = inv_entries(D)
+        # points (1, h_n, 0), (1, h_s, 0), (1, h_3, 1)
+        pts = [[1.0, h[0], 0], [1.0, h[1], 0], [1.0, h[2], 1.0]]
+
+        def form(u, v):
+            return add(*[mul(mul(u[p], Y[p][q]), v[q]) for p in range(3) for q in range(3)])
+
+        return [[form(pts[i], pts[j]) for j in range(3)] for i in range(3)]
 
 
 class NutJoint(eqx.Module):

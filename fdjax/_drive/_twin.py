@@ -9,6 +9,7 @@ over the degrees of freedom (DOFs)
 
     q = (θ1, θ_0 … θ_n, u_0 … u_n, x_c, ψ)        (N = 2n + 5),
 
+with ``x_t`` appended after ψ (N = 2n + 6) when the carriage carries a :class:`fdjax.Table`;
 then a state-space realisation ``ẋ = A x + B u``, ``y = C x + D u`` of its modes below a band.
 
 **Screw.** A uniform mesh of ``n`` linear two-node elements of length ``h = L/n`` over the whole
@@ -23,7 +24,9 @@ loss factor η has no time-domain realisation and must be 0.
 inertia and friction on θ1, the coupling (k_c, c_c) between θ1 and θ_0, drive-end and free-end
 inertias and dampers on θ_0 and θ_n, the thrust bearing (k, c, m) on u_0 and the free-end bearing
 on u_n, and the carriage: mass m and guideway damping c_x on x_c, pitch inertia J, stiffness k_ψ
-and damping c_ψ on ψ.
+and damping c_ψ on ψ; a table adds its mass m_t on x_t and its connection to the saddle,
+``k_t b_t b_tᵀ`` to K and ``c_t b_t b_tᵀ`` to C with ``b_t = (−1 on x_c, −h_t on ψ, +1 on x_t)``.
+The tool point and F3 are ``x_c + h_3 ψ``, or ``x_t + (h_3 − h_t) ψ`` on a table.
 
 **Nut.** The nut sits at ``l = Y_table + l0`` inside element ``k = ⌊l/h⌋`` at local coordinate
 ``ξ = l/h − k``.  The screw point under it moves with the element's shape functions,
@@ -53,8 +56,8 @@ interpolation.
 
 **Modal truncation.**  M = LLᵀ (Cholesky), ``Ã = L⁻¹KL⁻ᵀ = ΨΛΨᵀ`` (``jnp.linalg.eigh``), mass-
 normalised modes ``Φ = L⁻ᵀΨ``.  The first ``m`` modes are kept, ascending.  The first is the
-rigid-body mode (motor, screw and carriage turning together, ``x_c = i_sc θ``): it is set from
-its closed form, ``ψ₀ ∝ Lᵀr`` with λ₀ = 0 exactly, since eigh gives it only to ±eps·λ_max.
+rigid-body mode (motor, screw and carriage turning together, ``x_c = x_t = i_sc θ``): it is set
+from its closed form, ``ψ₀ ∝ Lᵀr`` with λ₀ = 0 exactly, since eigh gives it only to ±eps·λ_max.
 
     q = Φ_m η,    η̈ + Ξ η̇ + Λ_m η = Φ_mᵀF u,    Ξ = Φ_mᵀ C Φ_m  (full: the damping stays
                                                                  non-proportional),
@@ -130,8 +133,9 @@ class TwinOptions(eqx.Module):
     parameters stay traced.
 
     Attributes:
-        n_elements: screw elements n, uniform over the screw length (N = 2n + 5 DOFs).  The
-            default meets 0.5 % on every natural frequency below 2 kHz of the reference drive.
+        n_elements: screw elements n, uniform over the screw length (N = 2n + 5 DOFs, 2n + 6
+            with a table).  The default meets 0.5 % on every natural frequency below 2 kHz of
+            the reference drive.
         kept_modes: modes kept in the state space (rigid-body mode included; the state has
             2·kept_modes entries), 1 ≤ kept_modes ≤ N.  ``None`` keeps the modes up to
             ``band_hz`` (counted over the travel with :func:`count_modes`, which needs concrete
@@ -187,7 +191,8 @@ _cplx = _checks.to_complex
 class FEMatrices(eqx.Module):
     r"""The finite-element model ``M q̈ + C q̇ + K q = F u``, ``y = S q`` at one table position.
 
-    DOFs ``q = (θ1, θ_0 … θ_n, u_0 … u_n, x_c, ψ)`` (rad, rad, m, m, rad), N = 2n + 5.
+    DOFs ``q = (θ1, θ_0 … θ_n, u_0 … u_n, x_c, ψ)`` (rad, rad, m, m, rad), N = 2n + 5, and
+    x_t (m) last, N = 2n + 6, when the carriage carries a :class:`fdjax.Table`.
 
     Attributes:
         mass: M, (N, N), symmetric positive definite.
@@ -283,8 +288,10 @@ def _shape_vector(l, h, n: int):
 
 def _assemble(drive: BallScrewDrive, position_m, n: int, nut_correction: bool) -> FEMatrices:
     screw, rot, ax, car, nut = drive.screw, drive.rotary, drive.axial, drive.carriage, drive.nut
-    N = 2 * n + 5
+    table = car.table
+    N = 2 * n + 3 + car.n_dofs
     it, ia, ic, ip = 1, n + 2, 2 * n + 3, 2 * n + 4  # first θ node, first u node, x_c, ψ
+    itab = 2 * n + 5  # x_t, when there is a table
     h = screw.length / n
     # Z and μ of Screw.torsion()/Screw.axial(), without building the Rods, whose value checks
     # would be compiled again into every program.
@@ -319,12 +326,16 @@ def _assemble(drive: BallScrewDrive, position_m, n: int, nut_correction: bool) -
         return [(i, i, 1.0)]
 
     # Rotary: motor, coupling, drive-end (θ_0) and free-end (θ_n) hubs; axial: thrust bearing on
-    # u_0, free-end bearing on u_n; carriage: rigid body (x_c, ψ) on the guideways.
-    M = M + lumped([
+    # u_0, free-end bearing on u_n; carriage: rigid body (x_c, ψ) on the guideways (and the
+    # table's mass on x_t).
+    masses = [
         (rot.motor_inertia, at(0)), (rot.drive_end_inertia, at(it)),
         (rot.free_end_inertia, at(it + n)), (ax.drive_end_mass, at(ia)),
         (car.mass, at(ic)), (car.pitch_inertia, at(ip)),
-    ])
+    ]
+    if table is not None:
+        masses.append((table.mass, at(itab)))
+    M = M + lumped(masses)
     C = C + lumped([
         (rot.motor_damping, at(0)), (rot.coupling_damping, spring(0, it)),
         (rot.drive_end_damping, at(it)), (rot.free_end_damping, at(it + n)),
@@ -349,21 +360,37 @@ def _assemble(drive: BallScrewDrive, position_m, n: int, nut_correction: bool) -
         k_eff = 1.0 / (1.0 / kj + c_loc)
         cj = k_eff**2 * (cj / kj**2 + beta * c_loc)
         kj = k_eff
+    if table is not None:
+        b = jnp.concatenate([b, jnp.zeros(1, jnp.float64)])
     bb = b[:, None] * b[None, :]
     K = K + kj * bb
     C = C + cj * bb
 
     e = np.eye(N)
-    F = jnp.stack([e[0], e[ic] + car.tool_height * e[ip]], -1)
-    S = jnp.stack([e[0], e[ic] + car.scale_height * e[ip], e[ic] + car.tool_height * e[ip]])
+    if table is None:
+        tool = e[ic] + car.tool_height * e[ip]
+    else:
+        # The table's connection to the saddle, δ = x_t − x_c − h_t ψ = b_tᵀq; the tool point
+        # (and F3) on the table, x_3 = x_t + (h_3 − h_t) ψ.
+        bt = (e[itab] - e[ic]) - table.height * e[ip]
+        btbt = bt[:, None] * bt[None, :]
+        K = K + table.stiffness * btbt
+        C = C + table.damping * btbt
+        tool = e[itab] + (car.tool_height - table.height) * e[ip]
+    F = jnp.stack([e[0], tool], -1)
+    S = jnp.stack([e[0], e[ic] + car.scale_height * e[ip], tool])
     return FEMatrices(mass=M, damping=C, stiffness=K, inputs=F, outputs=S)
 
 
 def _rigid_mode(drive: BallScrewDrive, n: int):
-    """The null vector of K: everything turns together, the carriage follows at i_sc, u = ψ = 0."""
-    N = 2 * n + 5
+    """The null vector of K: everything turns together, the carriage (and its table, x_t last)
+    follows at i_sc, u = ψ = 0."""
+    N = 2 * n + 3 + drive.carriage.n_dofs
     r = jnp.zeros(N, jnp.float64).at[: n + 2].set(1.0)
-    return r.at[2 * n + 3].set(drive.screw.ratio)
+    r = r.at[2 * n + 3].set(drive.screw.ratio)
+    if drive.carriage.table is not None:
+        r = r.at[2 * n + 5].set(drive.screw.ratio)
+    return r
 
 
 def _safe_sqrt(x):
