@@ -14,6 +14,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from test_statespace import normwise_error  # ‖H − H_ref‖₂/‖H_ref‖₂ in consistent units
+
 import fdjax
 from fdjax._drive._twin import _rigid_mode
 
@@ -48,18 +50,6 @@ def drive(plain):
 @pytest.fixture(scope="module")
 def H(drive):
     return np.asarray(drive.frf(POS, FREQ))
-
-
-def scaled(H, drive):
-    """H in consistent units (m/N): θ1 → i_sc θ1 and T1 → T1 / i_sc, for normwise errors."""
-    i = float(drive.screw.ratio)
-    return np.diag([i, 1.0, 1.0]) @ np.asarray(H) @ np.diag([1.0 / i, 1.0])
-
-
-def normwise_error(H, H_ref, drive):
-    """‖H − H_ref‖₂ / ‖H_ref‖₂ per frequency, in consistent units."""
-    E, R = scaled(H, drive) - scaled(H_ref, drive), scaled(H_ref, drive)
-    return np.linalg.norm(E, ord=2, axis=(-2, -1)) / np.linalg.norm(R, ord=2, axis=(-2, -1))
 
 
 def carriage_oracle(c, omega):
