@@ -38,31 +38,44 @@ TWO_PI = 2.0 * math.pi
 # (attribute path, value, unit, (plausible low, high), reason)
 PARAMETERS = [
     ("screw.length", 0.85, "m", (0.75, 1.0), "bearing span: 600 mm travel, a 150 mm nut, ends"),
-    ("screw.diameter", 0.0575, "m", (0.050, 0.060), "effective diameter of a 63 mm screw (root ≈ 57 mm)"),
+    ("screw.diameter", 0.0575, "m", (0.050, 0.060),
+     "effective diameter of a 63 mm screw (root ≈ 57 mm)"),
     ("screw.bore_diameter", 0.032, "m", (0.0, 0.040), "bored (coolant) screw, 12 mm wall"),
     ("screw.lead", 0.010, "m", (0.005, 0.020), "catalogue 63×10 screw: i_sc = 1.59 mm/rad"),
     ("screw.retardation", 1.0e-6, "s", (1e-8, 1e-5), "steel: ζ = βω/2 ≈ 0.3 % at 1 kHz"),
-    ("rotary.motor_inertia", 3.0e-3, "kg·m²", (1.5e-3, 1.5e-2), "rotor of a ~20 N·m servo motor with its hub"),
-    ("rotary.coupling_stiffness", 2.0e6, "N·m/rad", (2e5, 3e6), "lamina (disc) coupling for 60 mm shafts, stiff end"),
+    ("rotary.motor_inertia", 3.0e-3, "kg·m²", (1.5e-3, 1.5e-2),
+     "rotor of a ~20 N·m servo motor with its hub"),
+    ("rotary.coupling_stiffness", 2.0e6, "N·m/rad", (2e5, 3e6),
+     "lamina (disc) coupling for 60 mm shafts, stiff end"),
     ("rotary.coupling_damping", 0.15, "N·m·s/rad", (0.01, 1.0), "steel discs: ζ below 1 %"),
-    ("rotary.motor_damping", 0.05, "N·m·s/rad", (1e-3, 0.05), "motor bearings and seal, linearised (upper end)"),
-    ("rotary.drive_end_inertia", 7.7e-4, "kg·m²", (3e-4, 3e-3), "screw-side hub, bearing rings, lock nut"),
-    ("rotary.drive_end_damping", 1.0e-3, "N·m·s/rad", (1e-3, 1.0), "preloaded bearing friction (lower end)"),
-    ("rotary.free_end_inertia", 3.0e-4, "kg·m²", (5e-5, 1e-3), "free-end bearing rings and lock nut"),
+    ("rotary.motor_damping", 0.05, "N·m·s/rad", (1e-3, 0.05),
+     "motor bearings and seal, linearised (upper end)"),
+    ("rotary.drive_end_inertia", 7.7e-4, "kg·m²", (3e-4, 3e-3),
+     "screw-side hub, bearing rings, lock nut"),
+    ("rotary.drive_end_damping", 1.0e-3, "N·m·s/rad", (1e-3, 1.0),
+     "preloaded bearing friction (lower end)"),
+    ("rotary.free_end_inertia", 3.0e-4, "kg·m²", (5e-5, 1e-3),
+     "free-end bearing rings and lock nut"),
     ("rotary.free_end_damping", 5.0e-3, "N·m·s/rad", (1e-3, 1.0), "free-end bearing friction"),
-    ("axial.drive_end_stiffness", 2.0e9, "N/m", (5e8, 3e9), "angular-contact thrust set of a 63 mm screw with housing"),
+    ("axial.drive_end_stiffness", 2.0e9, "N/m", (5e8, 3e9),
+     "angular-contact thrust set of a 63 mm screw with housing"),
     ("axial.drive_end_damping", 490.0, "N·s/m", (1e2, 5e4), "bearing-housing damping"),
-    ("axial.free_end_stiffness", 0.0, "N/m", (0.0, 0.0), "fixed–supported: the free end takes no axial load"),
+    ("axial.free_end_stiffness", 0.0, "N/m", (0.0, 0.0),
+     "fixed–supported: the free end takes no axial load"),
     ("axial.drive_end_mass", 5.0, "kg", (1.0, 10.0), "bearing inner rings, spacer, lock nut, hub"),
     ("carriage.mass", 1000.0, "kg", (250.0, 1500.0), "saddle carrying the X table and workpiece"),
-    ("carriage.pitch_inertia", 50.0, "kg·m²", (25.0, 80.0), "m(a² + h²)/12 of a 0.75 m × 0.25 m saddle ≈ 52"),
-    ("carriage.pitch_stiffness", 5.5e6, "N·m/rad", (5e6, 7e8), "blocks with saddle and column bending in series (soft end)"),
-    ("carriage.axial_damping", 9.1e4, "N·s/m", (1e2, 1e5), "guideways with damping carriages, pre-sliding (upper end)"),
+    ("carriage.pitch_inertia", 50.0, "kg·m²", (25.0, 80.0),
+     "m(a² + h²)/12 of a 0.75 m × 0.25 m saddle ≈ 52"),
+    ("carriage.pitch_stiffness", 5.5e6, "N·m/rad", (5e6, 7e8),
+     "blocks with saddle and column bending in series (soft end)"),
+    ("carriage.axial_damping", 9.1e4, "N·s/m", (1e2, 1e5),
+     "guideways with damping carriages, pre-sliding (upper end)"),
     ("carriage.pitch_damping", 2800.0, "N·m·s/rad", (1e2, 1e5), "ζ ≈ 10 % guideway joint damping"),
     ("carriage.nut_height", -0.12, "m", (-0.20, -0.02), "screw axis below the pitch centre"),
     ("carriage.scale_height", -0.20, "m", (-0.25, -0.02), "linear scale at the saddle base"),
     ("carriage.tool_height", 0.30, "m", (0.0, 0.50), "tool point above the pitch centre"),
-    ("nut.stiffness", 4.0e9, "N/m", (1e9, 4e9), "preloaded double nut of a 63 mm screw (catalogue top)"),
+    ("nut.stiffness", 4.0e9, "N/m", (1e9, 4e9),
+     "preloaded double nut of a 63 mm screw (catalogue top)"),
     ("nut.damping", 5100.0, "N·s/m", (1e2, 3e4), "nut joint damping"),
     ("nut_offset", 0.08, "m", (0.05, 0.15), "nut 80 mm from the thrust bearing at Y_table = 0"),
 ]
@@ -87,7 +100,8 @@ def candidate_drive() -> fdjax.BallScrewDrive:
 # filters are re-tuned.
 GAINS = dict(kp=200.0, ki=60.0)
 KV = 5400.0
-FILTERS = dict(K=0.34, f_peak=174.0, xi=0.20, phi_deg=-50.0, f_notch=1260.0, zeta_n=0.005, zeta_d=0.34)
+FILTERS = dict(K=0.34, f_peak=174.0, xi=0.20, phi_deg=-50.0,
+               f_notch=1260.0, zeta_n=0.005, zeta_d=0.34)
 
 
 def mcm(K, f_peak, xi, phi_deg, f_notch, zeta_n, zeta_d) -> MCM:
@@ -194,7 +208,8 @@ def main(quick: bool):
     fixed = np.array([kv_max(mcm(**F), drive, q) for q in positions])
     print("(c) fixed controller, k_v headroom (dB) over", positions)
     print("   ", np.round(20 * np.log10(np.maximum(fixed, 1e-9) / KV), 1))
-    print(f"    at 115 mm: {20 * math.log10(with_mcm / KV):.1f} dB; k_v = {KV:.0f} stable from k_v/4 up: "
+    print(f"    at 115 mm: {20 * math.log10(with_mcm / KV):.1f} dB; "
+          f"k_v = {KV:.0f} stable from k_v/4 up: "
           f"{stable_range(mcm(**F), drive, y, KV / 4, KV)}")
     if not quick:
         for q in (0.4, 0.55, 0.7):
