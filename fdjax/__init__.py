@@ -59,6 +59,7 @@ _EXPORTS = {
         "Servo",
     ),
     "._control._reference": (
+        "reference_controller",
         "reference_mcm",
         "reference_pid",
         "reference_servo",
@@ -88,6 +89,7 @@ _EXPORTS = {
         "ModelUpdate",
         "NutJoint",
         "reference_drive",
+        "REFERENCE_PARAMETERS",
         "Rod",
         "rod_receptance",
         "Rotary",
@@ -212,6 +214,7 @@ if TYPE_CHECKING:
         pade as pade,
     )
     from ._control._reference import (
+        reference_controller as reference_controller,
         reference_mcm as reference_mcm,
         reference_pid as reference_pid,
         reference_servo as reference_servo,
@@ -247,6 +250,7 @@ if TYPE_CHECKING:
         count_modes as count_modes,
         drive_modes as drive_modes,
         fe_matrices as fe_matrices,
+        REFERENCE_PARAMETERS as REFERENCE_PARAMETERS,
         reference_drive as reference_drive,
         rod_receptance as rod_receptance,
         state_space as state_space,

@@ -4,7 +4,8 @@
 * ``_substructures`` — the screw, the subsystems R, A, S (with an optional table) and the nut
   joint (paper Figs. 8–9).
 * ``_model`` — :class:`BallScrewDrive`: the substructures coupled at the nut, H_M (Eq. 2).
-* ``_reference`` — :func:`reference_drive`: the built-in drive's data, calibrated to Table 1.
+* ``_reference`` — :func:`reference_drive`: the built-in drive's data, each value with its
+  unit, plausible range and reason.
 * ``_twin`` — the finite-element time-domain twin and its truncated modal state space.
 * ``_modes`` — exact modes of the model: frequency, damping, resonant phase, tracking.
 * ``_updating`` — model updating: fitting bounded parameters to measured modal data.
@@ -20,7 +21,10 @@ from ._modes import (
     drive_modes as drive_modes,
     track_drive_modes as track_drive_modes,
 )
-from ._reference import reference_drive as reference_drive
+from ._reference import (
+    REFERENCE_PARAMETERS as REFERENCE_PARAMETERS,
+    reference_drive as reference_drive,
+)
 from ._rods import Rod as Rod, Support as Support, rod_receptance as rod_receptance
 from ._substructures import (
     Axial as Axial,
