@@ -156,7 +156,7 @@ def main():
                                                   "frf_sweep.json"))
     args = ap.parse_args()
 
-    drive = fdjax.reference_drive()
+    drive = fdjax.table1_drive()
     pos_np = np.linspace(0.1, 0.7, N_POS)
     freq_np = np.geomspace(1.0, 2500.0, N_FREQ)
     pos, freq = jnp.asarray(pos_np), jnp.asarray(freq_np)

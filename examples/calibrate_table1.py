@@ -1,6 +1,6 @@
-"""Model updating: the reference drive calibrated to the paper's Table 1.
+"""Model updating: the Table 1 drive (`fdjax.table1_drive()`), calibrated to the paper's Table 1.
 
-The paper's Table 1 lists the modes of h21 = x2/T1 at Y_table = 115 mm.  ``fdjax.reference_drive()``
+The paper's Table 1 lists the modes of h21 = x2/T1 at Y_table = 115 mm.  ``fdjax.table1_drive()``
 ships the calibrated parameters; this script checks them and reproduces the last stage of the
 fit with :func:`fdjax.update_model` (bounded Levenberg–Marquardt on the modal residuals through
 the eigen-analysis of the finite-element twin), inside the physically plausible bounds below.
@@ -12,7 +12,7 @@ How the shipped values were found (≈ 40 min of multi-start runs of ``update_mo
      saddle, a soft jaw coupling and a large screw-side inertia;
   2. all parameters with the table's tolerances, from the best frequency fit, then a free-end
      (fixed–fixed) axial stiffness and free-end inertia to place modes 4 and 5;
-  3. rounded to two digits (the shipped ``reference_drive()``).
+  3. rounded to two digits (the shipped ``table1_drive()``).
 The bounds matter more than the optimiser: with a 100 N·m/rad "belt" coupling and a 3 kg·m²
 pitch inertia (implausible) an earlier fit met 13 of 15 targets; inside these bounds the best fit
 meets 11 (see the README, "Calibration to Table 1", for the shortfall and why).
@@ -95,12 +95,12 @@ def report(title, res):
 
 
 if __name__ == "__main__":
-    drive = fdjax.reference_drive()
+    drive = fdjax.table1_drive()
     target, pos = fdjax.TABLE_1, fdjax.TABLE_1_POSITION_M
     # the shipped drive as it is: no steps, only the residuals
     t0 = time.perf_counter()
     shipped = fdjax.update_model(drive, target, BOUNDS, pos, tolerances=TOLERANCES, max_steps=0)
-    report("shipped reference_drive()", shipped)
+    report("shipped table1_drive()", shipped)
     # the last stage of the fit, from the shipped (rounded) values
     res = fdjax.update_model(drive, target, BOUNDS, pos, tolerances=TOLERANCES, max_steps=150)
     report(f"update_model polish ({int(res.steps)} steps, {time.perf_counter() - t0:.0f} s)", res)

@@ -1,4 +1,4 @@
-"""Stabilisation diagram of the reference drive's h21 = x2/T1 at Y_table = 115 mm, 1 % noise.
+"""Stabilisation diagram of the Table 1 drive's h21 = x2/T1 at Y_table = 115 mm, 1 % noise.
 
 Usage: python examples/stabilisation_diagram.py  (writes docs/figures/stabilisation_diagram.png)
 """
@@ -11,7 +11,7 @@ import fdjax
 import fdjax.plots as fp
 
 t0 = time.perf_counter()
-drive = fdjax.reference_drive()
+drive = fdjax.table1_drive()
 freq_hz = np.geomspace(10.0, 2500.0, 1500)
 h21 = np.asarray(drive.frf(0.115, freq_hz))[0, :, 1, 0]  # (position, freq, out, in)
 rng = np.random.default_rng(0)

@@ -85,29 +85,36 @@ def drive_figures(out: str, n_positions: int = 61) -> tuple[np.ndarray, np.ndarr
 
 
 def loop_figures(out: str, pos, f, H) -> None:
-    """Fig. 14: the default double loop without and with a peak filter on the axial mode, on
-    the exact FRF with the exact delay e^{−iωτ} (``Continuous()``, the reference servo).
+    """Fig. 14: the speed loop of :func:`fdjax.reference_controller` without and with its MCM
+    over the travel, as the reference servo runs it (``SampledData()``, 8 kHz, d = 2).
 
-    The peak filter of :func:`fdjax._control._reference.reference_mcm` (K = 0.5 on mode 3,
-    131 Hz, ξ = 0.3, φ = −60°), hand-set.
-    """
+    Without the MCM the screw's torsional mode (1260 Hz), which the motor encoder sees, loops
+    around −1: at this k_v the loop needs the notch."""
     import numpy as np
 
     import fdjax
     from fdjax import plots
-    from fdjax._control._reference import reference_mcm, reference_servo
+    from fdjax._control._reference import reference_controller, reference_servo
 
     drive = fdjax.reference_drive()
+    servo = reference_servo()
     fam = np.linspace(0, len(pos) - 1, 7).round().astype(int)
-    how = dict(servo=reference_servo(), method=fdjax.Continuous(),
-               screw_ratio=drive.screw.ratio)
-    peak = reference_mcm().peak
-    without = fdjax.open_loop(fdjax.DoubleLoop(), H[fam], f, **how)
-    with_pf = fdjax.open_loop(fdjax.DoubleLoop(mcm=fdjax.MCM(peak)), H[fam], f, **how)
+    f_s = np.geomspace(20.0, 0.995 * 0.5 / servo.period, 3000)
+    c = reference_controller(drive)
+    how = dict(servo=servo, position_m=pos[fam])
+    without = fdjax.open_loop(eqx_replace_mcm(c, fdjax.MCM()), drive, f_s, **how)
+    with_mcm = fdjax.open_loop(c, drive, f_s, **how)
     plots.plot_peak_filter_effect(
-        f, pos[fam], without.speed, with_pf.speed, loop_label="speed loop $L_v$",
-        radius=2.5, band_hz=(110.0, 155.0),
+        f_s, pos[fam], without.speed, with_mcm.speed, loop_label="speed loop $L_v$",
+        radius=2.5, band_hz=(1150.0, 1350.0), filter_label="MCM",
     ).savefig(os.path.join(out, "fig14_peak_filter.png"), dpi=90)
+
+
+def eqx_replace_mcm(controller, mcm):
+    """The double loop with another MCM (same gains)."""
+    import equinox as eqx
+
+    return eqx.tree_at(lambda c: c.mcm, controller, mcm)
 
 
 FIG16_POSITION_M = 0.115  # the paper's Figs. 16-17 are at Y_table = 115 mm
@@ -118,9 +125,9 @@ def simulation_figures(out: str) -> dict:
     control (FFC), tracking the short-stroke reciprocating motion at Y_table = 115 mm; the
     sampled-data loop of the reference servo (8 kHz, d = 2).  Returns the RMS scale errors (m)."""
     import fdjax
-    from fdjax import plots
+    from fdjax import DoubleLoop, plots
     from fdjax._control._reference import (
-        reference_mcm,
+        reference_controller,
         reference_pid,
         reference_servo,
         rigid_feedforward,
@@ -137,12 +144,11 @@ def simulation_figures(out: str) -> dict:
         "PID w/ FFC": fdjax.simulate(reference_pid(k_ffv=k_ffv, k_ffa=k_ffa), drive, ref,
                                      method, **run),
     }
-    mcm = reference_mcm()
+    c = reference_controller(drive, servo)
+    no_ffc = DoubleLoop(c.kp, c.kv, c.ki, k_ffv=0.0, k_ffa=0.0, mcm=c.mcm)
     mcm_runs = {
-        "P/PI + MCM w/o FFC": fdjax.simulate(fdjax.DoubleLoop(mcm=mcm, k_ffv=0.0, k_ffa=0.0),
-                                             drive, ref, method, **run),
-        "P/PI + MCM w/ FFC": fdjax.simulate(fdjax.DoubleLoop(mcm=mcm), drive, ref, method,
-                                            **run),
+        "P/PI + MCM w/o FFC": fdjax.simulate(no_ffc, drive, ref, method, **run),
+        "P/PI + MCM w/ FFC": fdjax.simulate(c, drive, ref, method, **run),
     }
     rate = 1e-3 / servo.period
     where = f"$Y_{{table}}$ = {FIG16_POSITION_M * 1e3:.0f} mm, sampled data at {rate:.0f} kHz"
@@ -194,7 +200,7 @@ def _margins_json(m) -> dict:
 
 
 def loop_summary(pos, f, H) -> dict:
-    """Margins of the default double loop over the travel, of the speed loop (broken at the
+    """Margins of the reference controller over the travel, of the speed loop (broken at the
     speed feedback, position loop open) and of the position loop (broken at the scale, speed
     loop closed), in two loop models:
 
@@ -206,15 +212,16 @@ def loop_summary(pos, f, H) -> dict:
     import numpy as np
 
     import fdjax
-    from fdjax._control._reference import reference_servo
+    from fdjax._control._reference import reference_controller, reference_servo
 
     drive = fdjax.reference_drive()
     servo = reference_servo()
+    c = reference_controller(drive, servo)
     nyquist = 0.5 / servo.period
-    f_s = np.geomspace(5.0, 0.995 * nyquist, 1500)
-    sampled = fdjax.loop_margins(fdjax.DoubleLoop(), drive, f_s, servo=servo,
+    f_s = np.geomspace(5.0, 0.995 * nyquist, 3000)
+    sampled = fdjax.loop_margins(c, drive, f_s, servo=servo,
                                  method=fdjax.SampledData(), position_m=pos)
-    continuous = fdjax.loop_margins(fdjax.DoubleLoop(), H, f, servo=servo,
+    continuous = fdjax.loop_margins(c, H, f, servo=servo,
                                     method=fdjax.Continuous(), screw_ratio=drive.screw.ratio)
 
     def loops(m, model, grid):
@@ -277,7 +284,7 @@ def reproduce(out: str, quick: bool = False) -> dict:
           "(frequency ±3 %, damping ±25 %, phase ±15°)")
     loop_figures(out, pos, f, H)
     loop = loop_summary(pos, f, H)
-    print("Default double loop over the travel:")
+    print("Reference controller over the travel:")
     print("  " + _loop_line("sampled, as the servo runs it", loop["sampled"]))
     print("  " + _loop_line("continuous, exact delay", loop["continuous"]))
     rms = simulation_figures(out)
@@ -312,7 +319,7 @@ def reproduce(out: str, quick: bool = False) -> dict:
 
 
 # The band `fdjax modes` identifies in, and reports the model's modes in.
-MODES_BAND_HZ = (10.0, 2500.0)
+MODES_BAND_HZ = (10.0, 3000.0)
 # Screw elements of the twin whose eigen-analysis `fdjax modes --source model` reports.
 MODES_TWIN_ELEMENTS = 48
 
@@ -343,8 +350,7 @@ def modes(out: str | None, n_positions: int, n_modes: int | None, source: str) -
         result = fdjax.track_modes(result)
     else:
         # The default twin mesh (12 screw elements) meets 0.5 % below 2 kHz; the band reaches
-        # 2.5 kHz, where its 2.42 kHz mode sits 0.54 % above the FRF's. 48 elements converge
-        # it to 0.03 % (O(h²)).
+        # 3 kHz, where the screw's modes need a finer mesh: 48 elements converge them (O(h²)).
         twin = fdjax.TwinOptions(n_elements=MODES_TWIN_ELEMENTS)
         m = fdjax.drive_modes(drive, pos, n_modes=max(12, n_modes or 0), twin=twin)
         n_band = int(np.min(np.sum(np.asarray(m.frequency_hz) <= f_hi, axis=1)))
@@ -443,7 +449,7 @@ def _parser() -> argparse.ArgumentParser:
                         "not a position; default 13)")
     p.add_argument("--n-modes", type=_count("the number of modes", 1), default=None,
                    metavar="N", help="report the lowest N modes (default: every mode in "
-                   "10-2500 Hz; the identification chooses its order itself)")
+                   "10-3000 Hz; the identification chooses its order itself)")
     p.add_argument("--source", choices=("fit", "model"), default="fit",
                    help="identify from the FRF (fit) or eigen-analysis of the twin (model)")
     return parser

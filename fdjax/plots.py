@@ -227,7 +227,7 @@ def plot_resonant_phase(position_m, frequency_hz, phase_deg, *, title="h21 = x2/
 
 def plot_peak_filter_effect(
     freq_hz, position_m, L_without, L_with, *, loop_label="speed loop $L_v$",
-    radius=3.0, band_hz=None,
+    radius=3.0, band_hz=None, filter_label="peak filter",
 ):
     """Paper Fig. 14: an open loop without and with a peak filter on the target mode, over
     several table positions ("with variation"): Nyquist plots and Bode magnitude and phase.
@@ -249,6 +249,7 @@ def plot_peak_filter_effect(
         loop_label: which loop, for the title.
         radius: half-width of the Nyquist window.
         band_hz: optional (f_lo, f_hi) of the target mode's band, shaded on the Bode plots.
+        filter_label: what the two cases differ by, for the titles ("peak filter", "MCM").
     """
     f, pos = np.asarray(freq_hz), np.atleast_1d(np.asarray(position_m))
     Ls = [np.atleast_2d(np.asarray(L_without)), np.atleast_2d(np.asarray(L_with))]
@@ -259,7 +260,7 @@ def plot_peak_filter_effect(
     mag = fig.add_subplot(grid[1, :])
     pha = fig.add_subplot(grid[2, :], sharex=mag)
     circle = np.exp(1j * np.linspace(0, 2 * np.pi, 361))
-    titles = ["without peak filter", "with peak filter"]
+    titles = [f"without {filter_label}", f"with {filter_label}"]
     for ax, L, title in zip(nyq, Ls, titles):
         for p in range(pos.size):
             ax.plot(L[p].real, L[p].imag, color=colors[p], lw=1.1)
@@ -291,8 +292,8 @@ def plot_peak_filter_effect(
             ax.axvspan(*band_hz, color="orange", alpha=0.15, lw=0, label="target mode band")
     handles = [plt.Line2D([], [], color=colors[p], label=f"{pos[p] * 1e3:.0f} mm")
                for p in range(pos.size)]
-    handles += [plt.Line2D([], [], color="k", ls="--", label="without peak filter"),
-                plt.Line2D([], [], color="k", ls="-", label="with peak filter")]
+    handles += [plt.Line2D([], [], color="k", ls="--", label=f"without {filter_label}"),
+                plt.Line2D([], [], color="k", ls="-", label=f"with {filter_label}")]
     mag.legend(handles=handles, title=r"$Y_{table}$", fontsize=7, ncol=3, loc="lower left")
     mag.set_ylabel("|L| (dB)")
     pha.set_ylabel("arg L (°)")
@@ -303,7 +304,8 @@ def plot_peak_filter_effect(
     for ax in (mag, pha):
         ax.grid(True, which="both", alpha=0.3)
     plt.setp(mag.get_xticklabels(), visible=False)
-    fig.suptitle(f"Peak filter on the target mode, {loop_label}, over the table travel "
+    what = filter_label[0].upper() + filter_label[1:]
+    fig.suptitle(f"{what} on the target modes, {loop_label}, over the table travel "
                  "(paper Fig. 14)")
     fig.tight_layout()
     return fig

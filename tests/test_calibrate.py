@@ -13,7 +13,7 @@ from fdjax._drive import ModalData, drive_modes, update_model
 
 @pytest.fixture(scope="module")
 def drive():
-    return fdjax.reference_drive()
+    return fdjax.table1_drive()
 
 
 def test_modes_agree_with_the_exact_frf(drive):
@@ -170,7 +170,7 @@ def test_identified_modes_agree_with_eigen_analysis(drive, identified):
 
 # ---------------------------------------------------------------- Table 1 calibration
 # The shipped reference drive against the paper's Table 1 (h21 at Y_table = 115 mm); the
-# shortfall documented in reference_drive's docstring and the README: (quantity, mode) → the
+# shortfall documented in table1_drive's docstring and the README: (quantity, mode) → the
 # documented range of the relative error (frequency, damping) or the phase error (°).
 TOLERANCES = (0.03, 0.25, 15.0)
 MET = np.array([  # rows: frequency, damping, phase; columns: modes 1–5
@@ -195,7 +195,7 @@ def _check_against_table_1(f_err, z_err, p_err):
         assert lo <= errors[quantity][k] <= hi, (quantity, k + 1, errors[quantity][k])
 
 
-def test_reference_drive_meets_table_1_or_the_documented_shortfall(drive, identified):
+def test_table1_drive_meets_table_1_or_the_documented_shortfall(drive, identified):
     """11 of 15 Table 1 targets met; the four misses are exactly the documented shortfall."""
     T, y = fdjax.TABLE_1, fdjax.TABLE_1_POSITION_M
     # the model's modes paired with the table as update_model pairs them (no steps taken)

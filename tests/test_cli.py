@@ -57,7 +57,8 @@ def test_demo_writes_figures(tmp_path):
     assert s["quick"] is True
     np.testing.assert_allclose(s["three_mass"]["natural_frequencies_hz"], [103.7, 154.5],
                                atol=0.05)
-    assert s["table_1"]["targets_met"] == 11  # the documented shortfall (test_calibrate)
+    # the reference drive's documented shortfall against Table 1 (test_reference, README)
+    assert s["table_1"]["targets_met"] == 2
     assert len(s["table_1"]["modes"]) == 5
     loop = s["double_loop"]
     assert len(loop["positions_m"]) == 13
@@ -65,15 +66,18 @@ def test_demo_writes_figures(tmp_path):
                              "k_motor": 1.2}
     for model in ("sampled", "continuous"):
         for name in ("speed", "position"):
-            m = loop[model][name]
-            assert len(m["gain_margin"]) == 13, (model, name)
-            assert min(m["gain_margin"]) > 1 and min(m["phase_margin_deg"]) > 30, (model, name)
+            assert len(loop[model][name]["gain_margin"]) == 13, (model, name)
+    sp, pos_ = loop["sampled"]["speed"], loop["sampled"]["position"]
+    # the reference controller, tuned at 115 mm and held fixed: its speed loop keeps its margins
+    # over the travel (GM 4.25, PM ≥ 53°); its position loop loses them toward the screw end,
+    # where the saddle's axial mode has moved from 177 to 118 Hz (GM 1.86 → 0.80)
+    assert min(sp["gain_margin"]) > 4 and min(sp["phase_margin_deg"]) > 50
+    assert pos_["gain_margin"][0] > 1.8 and pos_["gain_margin"][-1] < 0.85
+    assert np.all(np.diff(pos_["gain_margin"]) < 0)
     # the sampled loop adds the ZOH's and the backward difference's half-sample lags to τ:
-    # its speed loop crosses −180° lower, where the gain is higher
-    assert (max(loop["sampled"]["speed"]["phase_crossover_hz"])
-            < min(loop["continuous"]["speed"]["phase_crossover_hz"]))
-    assert max(loop["sampled"]["speed"]["gain_margin"]) < min(
-        loop["continuous"]["speed"]["gain_margin"])
+    # its position loop has less gain margin than the continuous one at every position
+    assert np.all(np.asarray(pos_["gain_margin"])
+                  < np.asarray(loop["continuous"]["position"]["gain_margin"]))
     assert loop["sampled"]["freq_hz"][1] < 0.5 / 1.25e-4  # below Nyquist
     rms = s["tracking"]["rms_scale_error_m"]
     assert set(rms) == {"PID w/o FFC", "PID w/ FFC", "P/PI + MCM w/o FFC", "P/PI + MCM w/ FFC"}
@@ -215,25 +219,30 @@ def test_reference_servo_is_the_default_servo():
     assert servo.tau == 2.5e-4
 
 
-def test_reference_mcm_targets_modes_3_and_5():
+def test_reference_mcm_targets_the_axial_and_torsional_modes():
     """At its centre the peak term is (K/2ξ) e^{i(π/2 − φ)} (Eq. (3)), the notch factor at its
     centre is ζ_n/ζ_d (Eq. (4)): closed forms, to the round-off of one second-order section."""
     mcm = reference_mcm()
-    K, xi, phi = 0.5, 0.3, np.radians(-60.0)
-    np.testing.assert_allclose(np.asarray(mcm.peak.omega) / (2 * np.pi), [131.0], rtol=4 * EPS)
-    np.testing.assert_allclose(np.asarray(mcm.notch.omega) / (2 * np.pi), [1508.0],
+    K, xi, phi = 0.34, 0.20, np.radians(-50.0)
+    np.testing.assert_allclose(np.asarray(mcm.peak.omega) / (2 * np.pi), [174.0], rtol=4 * EPS)
+    np.testing.assert_allclose(np.asarray(mcm.notch.omega) / (2 * np.pi), [1260.0],
                                rtol=4 * EPS)
-    peak = complex(np.asarray(mcm.peak.frf([131.0]))[0])
+    peak = complex(np.asarray(mcm.peak.frf([174.0]))[0])
     np.testing.assert_allclose(peak, 1 + K / (2 * xi) * np.exp(1j * (np.pi / 2 - phi)),
                                rtol=1e-13)
-    notch = complex(np.asarray(mcm.notch.frf([1508.0]))[0])
-    np.testing.assert_allclose(notch, 0.05 / 0.5, rtol=1e-13)
+    notch = complex(np.asarray(mcm.notch.frf([1260.0]))[0])
+    np.testing.assert_allclose(notch, 0.005 / 0.34, rtol=1e-12)
+    c = fdjax.reference_controller()
+    assert (float(c.kp), float(c.kv), float(c.ki), float(c.k_ffv)) == pytest.approx(
+        (200.0, 5400.0, 60.0, 1.0), rel=1e-14)
+    np.testing.assert_allclose(float(c.k_ffa), float(rigid_feedforward(fdjax.reference_drive())[1]),
+                               rtol=1e-15)
 
 
-def test_reference_pid_is_three_times_the_default():
+def test_reference_pid_is_the_default_scaled_to_6_db():
     base, pid = fdjax.PIDLoop(), reference_pid(k_ffv=2.0, k_ffa=0.5)
     for name in ("kp", "ki", "kd"):
-        np.testing.assert_allclose(float(getattr(pid, name)), 3 * float(getattr(base, name)),
+        np.testing.assert_allclose(float(getattr(pid, name)), 6.2 * float(getattr(base, name)),
                                    rtol=4 * EPS)
     np.testing.assert_allclose(float(pid.wd), float(base.wd), rtol=4 * EPS)
     assert float(pid.k_ffv) == 2.0 and float(pid.k_ffa) == 0.5

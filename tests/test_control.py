@@ -17,6 +17,7 @@ import optax
 import pytest
 import scipy.signal as sig
 from scipy.optimize import linear_sum_assignment
+from table1 import table1_loop  # the Table 1 drive's hand-set double loop
 
 import fdjax
 from fdjax import _analysis
@@ -76,7 +77,7 @@ def lead_tf(ctl):
 
 @pytest.fixture(scope="module")
 def drive():
-    return fdjax.reference_drive()
+    return fdjax.table1_drive()
 
 
 @pytest.fixture(scope="module")
@@ -217,7 +218,7 @@ def test_sampled_margins_match_python_control(twin, with_mcm):
     peak = fdjax.PeakFilter(0.5, TWO_PI * 115.0, 0.5, np.radians(-75.0))
     notch = fdjax.NotchFilter(TWO_PI * 1190.0, 0.05, 0.5)
     mcm = fdjax.MCM(peak, notch) if with_mcm else fdjax.MCM()
-    loop = fdjax.DoubleLoop(mcm=mcm)
+    loop = table1_loop(mcm=mcm)
     kp, kv, ki = (float(x) for x in (loop.kp, loop.kv, loop.ki))
     k_m, isc = float(SERVO.k_motor), float(twin.screw_ratio)
     # every piece as a state space: python-control's products of transfer functions lose the
@@ -274,7 +275,7 @@ def _traces(fn):
 
 
 def test_one_compilation_for_new_positions(drive):
-    loop = fdjax.DoubleLoop()
+    loop = table1_loop()
     ref = fdjax.reciprocating(stroke=1e-3, v_max=0.05, a_max=2.0, j_max=400.0, cycles=1)
     cases = [
         (_simulate._simulate_traced,
@@ -333,7 +334,7 @@ def test_failures_carry_their_message_under_jit_and_vmap(drive):
 
 def test_result_pytree_is_the_same_eager_and_jitted(drive):
     ref = fdjax.reciprocating(stroke=1e-3, v_max=0.05, a_max=2.0, j_max=400.0, cycles=1)
-    run = lambda p: fdjax.simulate(fdjax.DoubleLoop(), drive, ref, position_m=p, twin=TWIN6)
+    run = lambda p: fdjax.simulate(table1_loop(), drive, ref, position_m=p, twin=TWIN6)
     a, b = run(0.3), jax.jit(run)(0.3)
     assert jax.tree_util.tree_structure(a) == jax.tree_util.tree_structure(b)
     # the same program, fused into the caller's: round-off of the recursion, measured 1.2e-14

@@ -14,7 +14,7 @@ FREQ = np.geomspace(2.0, 3000.0, 1500)
 
 @pytest.fixture(scope="module")
 def drive():
-    return fdjax.reference_drive()
+    return fdjax.table1_drive()
 
 
 @pytest.fixture(scope="module")

@@ -26,7 +26,7 @@ def _raises(match, fn, *args):
 
 @pytest.fixture(scope="module")
 def drive():
-    return fdjax.reference_drive()
+    return fdjax.table1_drive()
 
 
 # ------------------------------------------------------------------------------------ rods

@@ -13,6 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.signal as sig
+from table1 import table1_loop  # the Table 1 drive's hand-set double loop
 
 import fdjax
 from fdjax._trajectory import jerk_limited, reciprocating
@@ -27,7 +28,7 @@ TWIN8 = fdjax.TwinOptions(kept_modes=8)  # a reduced twin (the moving table rebu
 
 @pytest.fixture(scope="module")
 def drive():
-    return fdjax.reference_drive()
+    return fdjax.table1_drive()
 
 
 @pytest.fixture(scope="module")
@@ -137,7 +138,7 @@ def _rel(a, b):
 
 @pytest.mark.parametrize("kind", ["double", "double-tustin", "pid"])
 def test_sampled_matches_per_sample_numpy(plant, mcm, reference, kind):
-    loop = fdjax.DoubleLoop(mcm=mcm) if kind != "pid" else fdjax.PIDLoop(k_ffv=10.0)
+    loop = table1_loop(mcm=mcm) if kind != "pid" else fdjax.PIDLoop(k_ffv=10.0)
     method = "tustin" if kind == "double-tustin" else "fitted"
     n = 1200
     force = np.where(np.arange(n) > 600, 50.0, 0.0)
@@ -153,7 +154,7 @@ def test_sampled_matches_per_sample_numpy(plant, mcm, reference, kind):
 
 
 def test_sampled_matches_python_control(plant, mcm, reference):
-    loop = fdjax.DoubleLoop(mcm=mcm)
+    loop = table1_loop(mcm=mcm)
     sl = fdjax.closed_loop(loop, plant, servo=SERVO)
     assert float(sl.dt) == DT
     n = 2000
@@ -169,7 +170,7 @@ def test_sampled_matches_python_control(plant, mcm, reference):
 @pytest.mark.parametrize("kind", ["double", "pid"])
 def test_ode_matches_lsim(plant, mcm, reference, kind):
     """The diffrax path (ExponentialFOH) solves the Padé loop as lsim does (first-order hold)."""
-    loop = fdjax.DoubleLoop(mcm=mcm) if kind == "double" else fdjax.PIDLoop()
+    loop = table1_loop(mcm=mcm) if kind == "double" else fdjax.PIDLoop()
     n = 3000
     t, W = _inputs(reference, n, DT)
     cl = fdjax.closed_loop(loop, plant, servo=SERVO, method=PADE6)
@@ -188,7 +189,7 @@ def test_ode_matches_lsim(plant, mcm, reference, kind):
 
 def test_ode_general_solver_matches_lsim(plant, reference):
     """A stock diffrax solver (Kvaerno5, adaptive) on the same ODE agrees too."""
-    loop = fdjax.DoubleLoop()
+    loop = table1_loop()
     n = 401
     t, W = _inputs(reference, n, DT)
     cl = fdjax.closed_loop(loop, plant, servo=SERVO, method=PADE6)
@@ -209,7 +210,7 @@ def test_ode_general_solver_matches_lsim(plant, reference):
 def test_sampled_and_pade_agree_at_first_order(plant, reference):
     """Same loop, two delay models: the sampled loop's extra half-sample lags (ZOH, backward
     difference) vanish as T → 0 with τ fixed; the difference is O(T)."""
-    loop = fdjax.DoubleLoop()
+    loop = table1_loop()
     dur = 0.025
     errs = []
     for T in (1.25e-4, 6.25e-5, 3.125e-5):
@@ -333,7 +334,7 @@ def test_gradients_match_central_differences(drive, mcm, reference):
 
 
 def test_vmap_over_positions_equals_loop(drive, reference):
-    loop = fdjax.DoubleLoop()
+    loop = table1_loop()
     twin = fdjax.TwinOptions(kept_modes=fdjax.count_modes(drive))
     pos = jnp.array([0.115, 0.4, Y_END])
 
@@ -356,7 +357,7 @@ def test_vmap_over_positions_equals_loop(drive, reference):
 def test_moving_table(drive):
     """Moving table, continuous path: the exponential midpoint rule agrees with a stiff adaptive
     solver (at rest it is the frozen loop on the same basis: the sampled test below)."""
-    loop = fdjax.DoubleLoop()
+    loop = table1_loop()
     fast = jerk_limited(0.02, 1.0, 20.0, 2.0e4)  # 20 mm at 20 m/s²: Y moves 1 mm in 10 ms
     dur = 0.01
     a = fdjax.simulate(loop, drive, fast, fdjax.PadeODE(), servo=SERVO, position_m=0.3,
@@ -379,7 +380,7 @@ def test_moving_table_sampled(drive):
     (transition); and the same moving effect as the continuous path's."""
     from fdjax._simulation._moving import MovingPlant
 
-    loop = fdjax.DoubleLoop()
+    loop = table1_loop()
     n = 401
     force = jnp.where(jnp.arange(n) > 40, 100.0, 0.0)
     still = jerk_limited(1e-9, 0.1, 2.0, 200.0)
@@ -438,21 +439,21 @@ def test_bad_input_messages(plant, reference):
     with pytest.raises(ValueError, match=r"PadeODE\(dt=...\)` must be a positive number"):
         fdjax.PadeODE(dt=-1e-4)
     with pytest.raises(ValueError, match=r"simulate\(disturbance=...\)` must have shape"):
-        fdjax.simulate(fdjax.DoubleLoop(), plant, reference, duration=0.01,
+        fdjax.simulate(table1_loop(), plant, reference, duration=0.01,
                        disturbance=np.zeros(3))
     with pytest.raises(ValueError, match=r"simulate\(position_m=..., moving=True\)` need a "
                                          r"BallScrewDrive"):
-        fdjax.simulate(fdjax.DoubleLoop(), plant, reference, moving=True)
+        fdjax.simulate(table1_loop(), plant, reference, moving=True)
     with pytest.raises(ValueError, match=r"BacksolveAdjoint\(\)\)` is not supported"):
         fdjax.PadeODE(adjoint=diffrax.BacksolveAdjoint())
     with pytest.raises(TypeError, match=r"simulate\(reference=...\)"):
-        fdjax.simulate(fdjax.DoubleLoop(), plant, object())
+        fdjax.simulate(table1_loop(), plant, object())
     with pytest.raises(TypeError, match=r"`simulate\(method=\.\.\.\)` must be "
                                         r"fdjax.SampledData\(\) or fdjax.PadeODE\(\)"):
-        fdjax.simulate(fdjax.DoubleLoop(), plant, reference, fdjax.Continuous())
-    d = fdjax.reference_drive()
+        fdjax.simulate(table1_loop(), plant, reference, fdjax.Continuous())
+    d = fdjax.table1_drive()
     with pytest.raises(ValueError, match=r"`simulate\(position_m=\.\.\.\)` must be inside the "
                                          r"travel \[0.1, 0.7\] m, got 115"):
-        fdjax.simulate(fdjax.DoubleLoop(), d, reference, position_m=115.0)
+        fdjax.simulate(table1_loop(), d, reference, position_m=115.0)
     with pytest.raises(ValueError, match=r"reaches 5.1 m, outside the travel"):
-        fdjax.simulate(fdjax.DoubleLoop(), d, fdjax.reciprocating(stroke=5.0), position_m=0.1)
+        fdjax.simulate(table1_loop(), d, fdjax.reciprocating(stroke=5.0), position_m=0.1)

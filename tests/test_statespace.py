@@ -24,7 +24,7 @@ import pytest
 import scipy.linalg
 import scipy.signal
 
-from fdjax._drive import reference_drive
+from fdjax._drive import table1_drive as reference_drive  # the twin checked on the Table 1 drive
 from fdjax._drive._twin import (
     DEFAULT_ELEMENTS,
     TwinOptions,
@@ -55,8 +55,8 @@ def undamped(drive):
 
 def _rods(drive):
     s = drive.screw
-    d, rho = float(s.diameter), float(s.density)
-    area, polar = np.pi * d**2 / 4, np.pi * d**4 / 32
+    d, di, rho = float(s.diameter), float(s.bore_diameter), float(s.density)
+    area, polar = np.pi * (d**2 - di**2) / 4, np.pi * (d**4 - di**4) / 32
     return (
         (float(s.shear_modulus) * polar, rho * polar),  # torsion (GJ, ρJ)
         (float(s.youngs_modulus) * area, rho * area),  # axial (EA, ρA)

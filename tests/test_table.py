@@ -39,7 +39,7 @@ def with_table(drive, table):
 
 @pytest.fixture(scope="module")
 def plain():
-    return fdjax.reference_drive()
+    return fdjax.table1_drive()
 
 
 @pytest.fixture(scope="module")

@@ -21,7 +21,11 @@ from ._controllers import DoubleLoop, PIDLoop
 from ._servo import REFERENCE_DELAY_SAMPLES, REFERENCE_K_MOTOR, REFERENCE_PERIOD_S, Servo
 
 __all__ = [
-    "reference_controller", "reference_servo", "reference_mcm", "reference_pid", "rigid_feedforward",
+    "reference_controller",
+    "reference_servo",
+    "reference_mcm",
+    "reference_pid",
+    "rigid_feedforward",
 ]
 
 _TWO_PI = 2.0 * math.pi

@@ -24,6 +24,7 @@ from ._modes import (
 from ._reference import (
     REFERENCE_PARAMETERS as REFERENCE_PARAMETERS,
     reference_drive as reference_drive,
+    table1_drive as table1_drive,
 )
 from ._rods import Rod as Rod, Support as Support, rod_receptance as rod_receptance
 from ._substructures import (

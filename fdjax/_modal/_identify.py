@@ -530,7 +530,41 @@ def _identify_auto(freq_hz, frf, n_modes, *, rigid_body, real_poles, upper_resid
     band = (float(freq_hz[0]), float(freq_hz[-1]))
     if not _refined_ok(fit, diagram, band):
         fit = _finish(s, h, w, h_scale, omega_ref, p0, solver, model, False, max_steps, False)
-    return fit
+    return _without_cancelled_poles(fit)
+
+
+# A mode's own term below this share of the fitted response at its natural frequency (every
+# channel) is a spare pole that the fit has cancelled by a vanishing residue, not a mode.
+_CANCELLED = 1e-6
+
+
+def _without_cancelled_poles(fit: ModalFit) -> ModalFit:
+    """``fit`` without the pole pairs whose residues vanish (|own term| < 1e-6 |H| at ω_r).
+
+    Noise-free data fitted at a higher order than it needs can keep a spare pole at the same
+    place from order to order (here 12.9 Hz, ζ ≈ 1e-5, residue 1e-13 of the modes'); it is
+    stable in the diagram but contributes nothing, and dropping it leaves the fit unchanged."""
+    f = np.asarray(fit.frequency_hz)
+    if f.size == 0 or not np.all(np.isfinite(f)) or np.any(f <= 0):
+        return fit
+    order = np.argsort(f)
+    fs = f[order]
+    if np.any(np.diff(fs) <= 0):
+        return fit
+    own = np.abs(np.asarray(fit.mode_frf(fs)))  # (freq, mode, *channel)
+    total = np.abs(np.asarray(fit.frf(fs)))  # (freq, *channel)
+    k = np.arange(f.size)
+    share = own[np.argsort(order)[k], k] / np.maximum(total[np.argsort(order)], 1e-300)
+    share = share.reshape(f.size, -1).max(axis=1)
+    keep = np.flatnonzero(share >= _CANCELLED)
+    if keep.size == f.size:
+        return fit
+    return eqx.tree_at(
+        lambda m: (m.frequency_hz, m.damping_ratio, m.phase_deg, m.residues, m.poles),
+        fit,
+        tuple(x[keep] for x in (fit.frequency_hz, fit.damping_ratio, fit.phase_deg,
+                                 fit.residues, fit.poles)),
+    )
 
 
 def _refined_ok(fit: ModalFit, diagram: StabilisationDiagram, band) -> bool:
