@@ -19,7 +19,7 @@ method = fdjax.SampledData()  # the loop as the servo runs it, at the servo's pe
 twin = fdjax.TwinOptions(kept_modes=fdjax.count_modes(drive))
 
 # One run at the paper's position (Figs. 16-17 are at Y_table = 115 mm)
-sim = fdjax.simulate(fdjax.DoubleLoop(), drive, reference, method, servo=servo,
+sim = fdjax.simulate(fdjax.reference_controller(), drive, reference, method, servo=servo,
                      position_m=0.115)
 print(f"RMS scale error at 115 mm: {float(sim.rms_error()) * 1e6:.2f} µm "
       f"(tool point: {float(sim.rms_error('tool')) * 1e6:.2f} µm)")
@@ -49,7 +49,7 @@ for k, v in grad(gains).items():
 # 100 mm, the plant rebuilt at every servo sample, against the loop frozen at 100 mm
 traverse = fdjax.jerk_limited(0.3, v_max=0.5, a_max=5.0, j_max=500.0)
 runs = {
-    name: fdjax.simulate(fdjax.DoubleLoop(), drive, traverse, method, servo=servo,
+    name: fdjax.simulate(fdjax.reference_controller(), drive, traverse, method, servo=servo,
                          position_m=0.1, moving=name == "moving")
     for name in ("moving", "frozen")
 }

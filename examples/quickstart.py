@@ -41,7 +41,7 @@ batch = jax.vmap(lambda k: eqx.tree_at(lambda d: d.nut.stiffness, drive, k).rece
 print("batched over nut stiffness:", batch.shape)
 
 # The closed loop of paper Fig. 13 on a short-stroke reciprocating motion, as the servo runs it
-loop = fdjax.DoubleLoop()  # P position / PI speed loop, feed-forward
+loop = fdjax.reference_controller()  # P position / PI speed loop with MCM, feed-forward
 servo = fdjax.Servo()  # hardware: 8 kHz, delay 2 periods, k_i·k_T
 sim = fdjax.simulate(loop, drive, fdjax.reciprocating(), fdjax.SampledData(), servo=servo,
                      position_m=0.115)
@@ -63,5 +63,5 @@ class PP(fdjax.AbstractController):  # P position loop over a P speed loop
         return fdjax.Law((fdjax.Path({"r": kv * kp, "x2": -kv * kp, "v_m": -kv}),))
 
 
-st = fdjax.check_stability(PP(jnp.array(40.0), jnp.array(3e3)), drive, position_m=0.4)
+st = fdjax.check_stability(PP(jnp.array(10.0), jnp.array(150.0)), drive, position_m=0.4)
 print(st.message)
