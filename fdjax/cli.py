@@ -102,7 +102,7 @@ def loop_figures(out: str, pos, f, H) -> None:
     f_s = np.geomspace(20.0, 0.995 * 0.5 / servo.period, 3000)
     c = reference_controller(drive)
     how = dict(servo=servo, position_m=pos[fam])
-    without = fdjax.open_loop(eqx_replace_mcm(c, fdjax.MCM()), drive, f_s, **how)
+    without = fdjax.open_loop(_with_mcm(c, fdjax.MCM()), drive, f_s, **how)
     with_mcm = fdjax.open_loop(c, drive, f_s, **how)
     plots.plot_peak_filter_effect(
         f_s, pos[fam], without.speed, with_mcm.speed, loop_label="speed loop $L_v$",
@@ -110,7 +110,7 @@ def loop_figures(out: str, pos, f, H) -> None:
     ).savefig(os.path.join(out, "fig14_peak_filter.png"), dpi=90)
 
 
-def eqx_replace_mcm(controller, mcm):
+def _with_mcm(controller, mcm):
     """The double loop with another MCM (same gains)."""
     import equinox as eqx
 
