@@ -153,6 +153,8 @@ _EXPORTS = {
         "GAIN_PARAMETERS",
         "MCM_PARAMETERS",
         "MCMBounds",
+        "LocalTuning",
+        "tune_local",
     ),
     "._trajectory": (
         "concatenate",
@@ -308,6 +310,7 @@ if TYPE_CHECKING:
         MCM_PARAMETERS as MCM_PARAMETERS,
         ATANetwork as ATANetwork,
         DoubleLoopParameterisation as DoubleLoopParameterisation,
+        LocalTuning as LocalTuning,
         MCMBounds as MCMBounds,
         Objective as Objective,
         ObjectiveTerms as ObjectiveTerms,
@@ -316,4 +319,5 @@ if TYPE_CHECKING:
         load_schedule as load_schedule,
         margin_penalty as margin_penalty,
         save_schedule as save_schedule,
+        tune_local as tune_local,
     )

@@ -7,11 +7,16 @@ steps cannot break.
   penalties, one function of the controller and the position.
 * ``_schedule``: :class:`ATANetwork` (position → the seven normalised filter parameters),
   :class:`ScheduledLoop` (the double loop with the network's MCM), save and load.
+* ``_local``: :func:`tune_local`, one design per table position in one ``vmap``-ed optax run.
 * ``_parameterisation``: :class:`MCMBounds` (the seven normalised MCM parameters the scheduling
   network outputs) and :class:`DoubleLoopParameterisation` (gains and filters of a
   :class:`fdjax.DoubleLoop` as one vector of order-one reals).
 """
 
+from ._local import (
+    LocalTuning as LocalTuning,
+    tune_local as tune_local,
+)
 from ._objective import (
     Objective as Objective,
     ObjectiveTerms as ObjectiveTerms,
