@@ -549,6 +549,8 @@ def gain_headroom(
     if not (isinstance(rtol, (int, float)) and 0 < rtol <= 0.1):
         raise ValueError(f"`{fn}(rtol=...)` must be a number in (0, 0.1], got {rtol!r}")
     _check_servo(servo, fn)
+    if position_m is not None and isinstance(plant, BallScrewDrive):
+        position_m = np.asarray(plant._check_travel(position_m, fn))  # named for the caller
     pos = None if position_m is None else np.asarray(position_m, np.float64)
     k_m = servo.k_motor
 

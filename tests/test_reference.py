@@ -120,7 +120,7 @@ def test_pid_tuned_at_115_mm_loses_its_margin_toward_the_screw_end(drive):
 def test_gain_headroom_checks_its_arguments(drive):
     with pytest.raises(ValueError, match=r"`gain_headroom\(max_gain=\.\.\.\)` must be a number"):
         fdjax.gain_headroom(PIDLoop(), drive, position_m=0.3, max_gain=0.5)
-    with pytest.raises(ValueError, match=r"`check_stability\(position_m=\.\.\.\)` must be inside"):
+    with pytest.raises(ValueError, match=r"`gain_headroom\(position_m=\.\.\.\)` must be inside"):
         fdjax.gain_headroom(PIDLoop(), drive, position_m=300.0)
 
 
