@@ -7,15 +7,30 @@ steps cannot break.
   penalties, one function of the controller and the position.
 * ``_schedule``: :class:`ATANetwork` (position → the seven normalised filter parameters),
   :class:`ScheduledLoop` (the double loop with the network's MCM), save and load.
-* ``_local``: :func:`tune_local`, one design per table position in one ``vmap``-ed optax run.
+* ``_local``: :func:`tune_local`, one design per table position in one ``vmap``-ed optax run;
+  :func:`tune_robust` (one design for all positions), :func:`tune_shared_gains` (one gain set,
+  one MCM per position); :func:`descend`, the optax loop they share.
+* ``_end_to_end``: :func:`train_schedule`, the network trained against the objective itself.
+* ``_certify``: :func:`certify`, stability and exact sampled margins every 1 mm.
 * ``_parameterisation``: :class:`MCMBounds` (the seven normalised MCM parameters the scheduling
   network outputs) and :class:`DoubleLoopParameterisation` (gains and filters of a
   :class:`fdjax.DoubleLoop` as one vector of order-one reals).
 """
 
+from ._certify import (
+    Certificate as Certificate,
+    certify as certify,
+)
+from ._end_to_end import train_schedule as train_schedule
 from ._local import (
+    Descent as Descent,
     LocalTuning as LocalTuning,
+    RobustTuning as RobustTuning,
+    descend as descend,
+    smooth_max as smooth_max,
     tune_local as tune_local,
+    tune_robust as tune_robust,
+    tune_shared_gains as tune_shared_gains,
 )
 from ._objective import (
     Objective as Objective,
@@ -24,8 +39,11 @@ from ._objective import (
 from ._parameterisation import (
     GAIN_PARAMETERS as GAIN_PARAMETERS,
     MCM_PARAMETERS as MCM_PARAMETERS,
+    PID_PARAMETERS as PID_PARAMETERS,
+    AbstractParameterisation as AbstractParameterisation,
     DoubleLoopParameterisation as DoubleLoopParameterisation,
     MCMBounds as MCMBounds,
+    PIDParameterisation as PIDParameterisation,
 )
 from ._penalties import (
     gain_distance as gain_distance,
@@ -36,6 +54,7 @@ from ._penalties import (
 )
 from ._schedule import (
     ATANetwork as ATANetwork,
+    InterpolatedLoop as InterpolatedLoop,
     ScheduledLoop as ScheduledLoop,
     fit_network as fit_network,
     load_schedule as load_schedule,

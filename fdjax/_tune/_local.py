@@ -18,12 +18,13 @@ import numpy as np
 import optax
 from jaxtyping import Array, ArrayLike, Float
 
-from .._control._controllers import DoubleLoop
+from .._control._controllers import AbstractController
 from .._drive._model import BallScrewDrive
 from ._objective import Objective, ObjectiveTerms
-from ._parameterisation import DoubleLoopParameterisation
+from ._parameterisation import AbstractParameterisation
 
-__all__ = ["LocalTuning", "tune_local"]
+__all__ = ["LocalTuning", "RobustTuning", "tune_local", "tune_robust", "tune_shared_gains",
+           "smooth_max", "descend", "Descent"]
 
 
 class LocalTuning(eqx.Module):
@@ -31,23 +32,23 @@ class LocalTuning(eqx.Module):
 
     Attributes:
         positions_m: the design positions (m), (n,).
-        theta: the final normalised parameters per position, (n, 12).
-        best_theta: per position the parameters of the lowest objective seen, (n, 12).
+        theta: the final normalised parameters per position, (n, p).
+        best_theta: per position the parameters of the lowest objective seen, (n, p).
         history: the objective J at every step and position, (steps, n).
         terms: the objective's terms at ``best_theta`` (batched over the positions).
         seconds: wall time of the steps, compilation apart (s).
     """
 
     positions_m: Float[Array, " n"]
-    theta: Float[Array, "n 12"]
-    best_theta: Float[Array, "n 12"]
+    theta: Float[Array, "n p"]
+    best_theta: Float[Array, "n p"]
     history: Float[Array, "steps n"]
     terms: ObjectiveTerms
     seconds: float = eqx.field(static=True)
 
 
 def tune_local(
-    parameterisation: DoubleLoopParameterisation,
+    parameterisation: AbstractParameterisation,
     objective: Objective,
     drive: BallScrewDrive,
     positions_m: Float[ArrayLike, " n"],
@@ -62,52 +63,28 @@ def tune_local(
 
         θ_i ← optimiser step on ∇_θ J(controller(θ_i), Y_i),   i = 1 … n   (``vmap``),
 
-    from ``start``: a :class:`fdjax.DoubleLoop` (the same at every position, e.g.
-    :func:`fdjax.reference_controller`) or its parameters per position, (n, 12).  Each position
+    from ``start``: a controller (the same at every position, e.g.
+    :func:`fdjax.reference_controller`) or its parameters per position, (n, p).  Each position
     keeps the lowest objective it has seen (``best_theta``).  Unstable candidates get a large,
     finite J with a finite gradient (:class:`Objective`); from an unstable start the barrier
     alone may need many steps, so start each position from a stable design (e.g. the design of
     the neighbouring position: continuation along the travel).
 
     Args:
-        parameterisation: the map θ ↦ :class:`fdjax.DoubleLoop`.
+        parameterisation: the map θ ↦ controller (:class:`fdjax.DoubleLoopParameterisation`,
+            :class:`fdjax.PIDParameterisation`).
         objective: J(controller, Y).
         drive: the drive.
         positions_m: design positions (m), 1-D, inside the travel.
-        start: the starting controller, or starting parameters (n, 12).
+        start: the starting controller, or starting parameters (n, p).
         steps: optimiser steps (≥ 1).
         optimiser: an optax transformation (default ``optax.adam(0.02)``).
         chunk: steps per compiled call (the progress line is printed between calls).
         progress: print the objective's mean and max after each chunk (to stderr).
     """
     fn = "tune_local"
-    if not isinstance(parameterisation, DoubleLoopParameterisation):
-        raise TypeError(f"`{fn}(parameterisation=...)` must be an "
-                        f"fdjax.DoubleLoopParameterisation, got {type(parameterisation).__name__}")
-    if not isinstance(objective, Objective):
-        raise TypeError(f"`{fn}(objective=...)` must be an fdjax.Objective, got "
-                        f"{type(objective).__name__}")
-    if not isinstance(drive, BallScrewDrive):
-        raise TypeError(f"`{fn}(drive=...)` must be an fdjax.BallScrewDrive, got "
-                        f"{type(drive).__name__}")
-    pos = np.asarray(positions_m, np.float64)
-    if pos.ndim != 1 or pos.size == 0:
-        raise ValueError(f"`{fn}(positions_m=...)` must be a non-empty 1-D array, got shape "
-                         f"{pos.shape}")
-    lo, hi = drive.travel_m
-    if not np.all((pos >= lo) & (pos <= hi)):
-        raise ValueError(f"`{fn}(positions_m=...)` must be inside the travel [{lo:.6g}, "
-                         f"{hi:.6g}] m, got {pos.tolist()}")
-    for name, value in (("steps", steps), ("chunk", chunk)):
-        if not (isinstance(value, int) and value >= 1):
-            raise ValueError(f"`{fn}({name}=...)` must be a positive int, got {value!r}")
-    n_par = len(parameterisation.names)
-    if isinstance(start, DoubleLoop):
-        start = jnp.broadcast_to(parameterisation.from_controller(start), (pos.size, n_par))
-    theta = jnp.asarray(start, jnp.float64)
-    if theta.shape != (pos.size, n_par):
-        raise ValueError(f"`{fn}(start=...)` must be an fdjax.DoubleLoop or have shape "
-                         f"({pos.size}, {n_par}), got {theta.shape}")
+    pos = _check_common(fn, parameterisation, objective, drive, positions_m, steps, chunk)
+    theta = _start(fn, parameterisation, start, pos.size)
     opt = optax.adam(0.02) if optimiser is None else optimiser
     y = jnp.asarray(pos)
     with jax.numpy_dtype_promotion("standard"):
@@ -157,3 +134,248 @@ def _run(par, objective, drive, y, theta, state, best, best_j, opt, steps):
     (theta, state, best, best_j), hist = jax.lax.scan(
         step, (theta, state, best, best_j), None, length=steps)
     return theta, state, best, best_j, hist
+
+
+def _check_common(fn, parameterisation, objective, drive, positions_m, steps, chunk):
+    if not isinstance(parameterisation, AbstractParameterisation):
+        raise TypeError(f"`{fn}(parameterisation=...)` must be an fdjax parameterisation "
+                        f"(DoubleLoopParameterisation, PIDParameterisation), got "
+                        f"{type(parameterisation).__name__}")
+    if not isinstance(objective, Objective):
+        raise TypeError(f"`{fn}(objective=...)` must be an fdjax.Objective, got "
+                        f"{type(objective).__name__}")
+    if not isinstance(drive, BallScrewDrive):
+        raise TypeError(f"`{fn}(drive=...)` must be an fdjax.BallScrewDrive, got "
+                        f"{type(drive).__name__}")
+    pos = np.asarray(positions_m, np.float64)
+    if pos.ndim != 1 or pos.size == 0:
+        raise ValueError(f"`{fn}(positions_m=...)` must be a non-empty 1-D array, got shape "
+                         f"{pos.shape}")
+    lo, hi = drive.travel_m
+    if not np.all((pos >= lo) & (pos <= hi)):
+        raise ValueError(f"`{fn}(positions_m=...)` must be inside the travel [{lo:.6g}, "
+                         f"{hi:.6g}] m, got {pos.tolist()}")
+    for name, value in (("steps", steps), ("chunk", chunk)):
+        if not (isinstance(value, int) and value >= 1):
+            raise ValueError(f"`{fn}({name}=...)` must be a positive int, got {value!r}")
+    return pos
+
+
+def _start(fn, parameterisation, start, n):
+    n_par = len(parameterisation.names)
+    if isinstance(start, AbstractController):
+        start = jnp.broadcast_to(parameterisation.from_controller(start), (n, n_par))
+    theta = jnp.asarray(start, jnp.float64)
+    if theta.shape != (n, n_par):
+        raise ValueError(f"`{fn}(start=...)` must be a controller of the parameterisation or "
+                         f"have shape ({n}, {n_par}), got {theta.shape}")
+    return theta
+
+
+def smooth_max(values: Float[ArrayLike, " n"], sharpness: float) -> Float[Array, ""]:
+    r"""A smooth maximum, (1/β) ln((1/n) Σ e^{β v_i}): between the mean (β → 0) and the
+    maximum (β → ∞), below the maximum by at most ln(n)/β."""
+    v = jnp.asarray(values)
+    return (jax.nn.logsumexp(sharpness * v) - jnp.log(v.shape[0])) / sharpness
+
+
+class RobustTuning(eqx.Module):
+    """Result of :func:`tune_robust`: one design for all positions.
+
+    Attributes:
+        positions_m: the positions the design is tuned at (m), (n,).
+        theta: the final normalised parameters, (p,).
+        best_theta: the parameters of the lowest robust objective seen, (p,).
+        history: the robust objective at every step, (steps,).
+        worst: max over the positions of J at every step, (steps,).
+        terms: the objective's terms at ``best_theta`` at each position.
+        seconds: wall time of the steps, compilation apart (s).
+    """
+
+    positions_m: Float[Array, " n"]
+    theta: Float[Array, " p"]
+    best_theta: Float[Array, " p"]
+    history: Float[Array, " steps"]
+    worst: Float[Array, " steps"]
+    terms: ObjectiveTerms
+    seconds: float = eqx.field(static=True)
+
+
+class _RobustLoss(eqx.Module):
+    par: AbstractParameterisation
+    objective: Objective
+    drive: BallScrewDrive
+    positions: Array
+    sharpness: float = eqx.field(static=True)
+
+    def __call__(self, theta):
+        c = self.par.to_controller(theta)
+        j = jax.vmap(lambda y: self.objective(c, self.drive, y).total)(self.positions)
+        return smooth_max(j, self.sharpness), jnp.max(j)
+
+
+def tune_robust(
+    parameterisation: AbstractParameterisation,
+    objective: Objective,
+    drive: BallScrewDrive,
+    positions_m: Float[ArrayLike, " n"],
+    start,
+    *,
+    steps: int = 200,
+    optimiser: optax.GradientTransformation | None = None,
+    sharpness: float = 2.0,
+    chunk: int = 25,
+    progress: bool = False,
+) -> RobustTuning:
+    r"""Tune one controller for all positions: the best single design with the margins at
+    every position (the robust baseline of paper Fig. 18),
+
+        θ ← optimiser step on ∇_θ smax_β(J(controller(θ), Y_1), …, J(controller(θ), Y_n)),
+
+    ``smax_β`` the :func:`smooth_max` of sharpness β (the worst position dominates; β → 0 is
+    the mean).  Every J carries the margin penalties at its position, so the design keeps the
+    margins everywhere it is tuned.  ``start``: a controller of the parameterisation or its θ.
+    Other arguments as :func:`tune_local`.
+    """
+    fn = "tune_robust"
+    pos = _check_common(fn, parameterisation, objective, drive, positions_m, steps, chunk)
+    if not (isinstance(sharpness, (int, float)) and sharpness > 0):
+        raise ValueError(f"`{fn}(sharpness=...)` must be a positive number, got {sharpness!r}")
+    if isinstance(start, AbstractController):
+        start = parameterisation.from_controller(start)
+    theta = jnp.asarray(start, jnp.float64)
+    if theta.shape != (len(parameterisation.names),):
+        raise ValueError(f"`{fn}(start=...)` must be a controller of the parameterisation or "
+                         f"have shape ({len(parameterisation.names)},), got {theta.shape}")
+    loss = _RobustLoss(parameterisation, objective, drive, jnp.asarray(pos), float(sharpness))
+    opt = optax.adam(0.02) if optimiser is None else optimiser
+    res = descend(loss, theta, opt, steps, chunk=chunk, progress=fn if progress else None)
+    y = jnp.asarray(pos)
+    c = parameterisation.to_controller(res.best)
+    terms = jax.vmap(lambda p: objective(c, drive, p))(y)
+    return RobustTuning(y, res.params, res.best, res.history, res.aux, terms, res.seconds)
+
+
+class Descent(eqx.Module):
+    """Result of :func:`descend`: final and best parameters, the loss and its auxiliary value
+    at every step, wall time of the steps after the first (compiling) chunk."""
+
+    params: object
+    best: object
+    history: Float[Array, " steps"]
+    aux: Array
+    seconds: float = eqx.field(static=True)
+
+
+def descend(loss, params, optimiser, steps: int, *, chunk: int = 25, key=None,
+            progress: str | None = None) -> Descent:
+    """Minimise ``loss(params) -> (value, aux)`` (or ``loss(params, key)`` when ``key`` is
+    given: a fresh key per step) by ``steps`` steps of ``optimiser``; ``loss`` is an
+    ``eqx.Module`` (its arrays are traced, one compilation for new values).  The steps run in
+    a ``lax.scan`` of ``chunk`` steps per compiled call; with ``progress`` (a name) a line per
+    chunk goes to stderr.  Keeps the parameters of the lowest value seen."""
+    with jax.numpy_dtype_promotion("standard"):
+        state = optimiser.init(params)
+    best, best_v = params, jnp.asarray(jnp.inf)
+    hist, auxs, t_steps, done = [], [], 0.0, 0
+    while done < steps:
+        k = min(chunk, steps - done)
+        keys = None if key is None else jax.random.split(jax.random.fold_in(key, done), k)
+        t0 = time.perf_counter()
+        params, state, best, best_v, (v, aux) = _descend_chunk(loss, params, state, best,
+                                                               best_v, optimiser, keys, k)
+        jax.block_until_ready(v)
+        if done > 0:
+            t_steps += time.perf_counter() - t0
+        hist.append(np.asarray(v))
+        auxs.append(np.asarray(aux))
+        done += k
+        if progress:
+            print(f"{progress}: step {done}/{steps}, objective {float(v[-1]):.4g} "
+                  f"(best {float(best_v):.4g})", file=sys.stderr, flush=True)
+    return Descent(params, best, jnp.asarray(np.concatenate(hist)),
+                   jnp.asarray(np.concatenate(auxs)), t_steps)
+
+
+@eqx.filter_jit
+def _descend_chunk(loss, params, state, best, best_v, opt, keys, steps):
+    def step(carry, k):
+        p, st, b, bv = carry
+        f = loss if k is None else (lambda q: loss(q, k))
+        (v, aux), g = eqx.filter_value_and_grad(f, has_aux=True)(p)
+        better = v < bv
+        b = jax.tree_util.tree_map(lambda x, y: jnp.where(better, x, y), p, b)
+        bv = jnp.where(better, v, bv)
+        with jax.numpy_dtype_promotion("standard"):
+            upd, st = opt.update(g, st, p)
+            p = eqx.apply_updates(p, upd)
+        return (p, st, b, bv), (v, aux)
+
+    (params, state, best, best_v), out = jax.lax.scan(
+        step, (params, state, best, best_v), keys, length=steps)
+    return params, state, best, best_v, out
+
+
+class _SharedGainsLoss(eqx.Module):
+    par: AbstractParameterisation
+    objective: Objective
+    drive: BallScrewDrive
+    positions: Array
+    n_shared: int = eqx.field(static=True)
+    sharpness: float = eqx.field(static=True)
+
+    def __call__(self, params):
+        shared, own = params
+        theta = jnp.concatenate(
+            [jnp.broadcast_to(shared, (own.shape[0], self.n_shared)), own], axis=1)
+        j = jax.vmap(lambda th, y: self.objective(self.par.to_controller(th), self.drive,
+                                                  y).total)(theta, self.positions)
+        return 0.5 * (jnp.mean(j) + smooth_max(j, self.sharpness)), j
+
+
+def tune_shared_gains(
+    parameterisation: AbstractParameterisation,
+    objective: Objective,
+    drive: BallScrewDrive,
+    positions_m: Float[ArrayLike, " n"],
+    start: Float[ArrayLike, "n p"],
+    *,
+    n_shared: int = 5,
+    steps: int = 200,
+    optimiser: optax.GradientTransformation | None = None,
+    sharpness: float = 2.0,
+    chunk: int = 25,
+    progress: bool = False,
+) -> LocalTuning:
+    r"""Local designs that share their first ``n_shared`` parameters (the gains of a
+    :class:`fdjax.DoubleLoopParameterisation`): what a schedule of the filters alone needs,
+    one gain set and one MCM per position (paper Sec. 4.2),
+
+        (θ_g, θ_1 … θ_n) ← optimiser step on ∇ ½ (mean_i J_i + smax_β J_i),
+        J_i = J(controller(θ_g, θ_i), Y_i),
+
+    from ``start`` (n, p), e.g. the designs of :func:`tune_local` (the shared part starts at
+    their mean).  Returns a :class:`LocalTuning` whose rows share the first ``n_shared``
+    entries; ``history`` is J per position at every step.
+    """
+    fn = "tune_shared_gains"
+    pos = _check_common(fn, parameterisation, objective, drive, positions_m, steps, chunk)
+    theta = _start(fn, parameterisation, start, pos.size)
+    n_par = theta.shape[1]
+    if not (isinstance(n_shared, int) and 0 < n_shared < n_par):
+        raise ValueError(f"`{fn}(n_shared=...)` must be an int in [1, {n_par - 1}], got "
+                         f"{n_shared!r}")
+    params = (jnp.mean(theta[:, :n_shared], axis=0), theta[:, n_shared:])
+    loss = _SharedGainsLoss(parameterisation, objective, drive, jnp.asarray(pos), n_shared,
+                            float(sharpness))
+    opt = optax.adam(0.02) if optimiser is None else optimiser
+    res = descend(loss, params, opt, steps, chunk=chunk, progress=fn if progress else None)
+
+    def rows(p):
+        return jnp.concatenate([jnp.broadcast_to(p[0], (pos.size, n_shared)), p[1]], axis=1)
+
+    best = rows(res.best)
+    y = jnp.asarray(pos)
+    terms = jax.vmap(lambda th, p: objective(parameterisation.to_controller(th), drive, p))(
+        best, y)
+    return LocalTuning(y, rows(res.params), best, res.aux, terms, res.seconds)

@@ -29,11 +29,13 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .._checks import concrete_float, fmt, is_concrete
-from .._control import DoubleLoop
+from .._control import DoubleLoop, PIDLoop
+from .._control._controllers import AbstractController
 from .._control._servo import Servo
 from .._filters import MCM, NotchFilter, PeakFilter
 
-__all__ = ["MCM_PARAMETERS", "GAIN_PARAMETERS", "MCMBounds", "DoubleLoopParameterisation"]
+__all__ = ["MCM_PARAMETERS", "GAIN_PARAMETERS", "PID_PARAMETERS", "MCMBounds",
+           "AbstractParameterisation", "DoubleLoopParameterisation", "PIDParameterisation"]
 
 MCM_PARAMETERS = ("peak_K", "peak_omega", "peak_xi", "peak_phi",
                   "notch_omega", "notch_zeta_d", "notch_depth")
@@ -41,6 +43,9 @@ MCM_PARAMETERS = ("peak_K", "peak_omega", "peak_xi", "peak_phi",
 
 GAIN_PARAMETERS = ("kp", "kv", "ki", "k_ffv", "k_ffa")
 """The five normalised gains of a :class:`fdjax.DoubleLoop`, in the order of θ."""
+
+PID_PARAMETERS = ("kp", "ki", "kd", "wd", "k_ffv", "k_ffa")
+"""The six normalised parameters of a :class:`fdjax.PIDLoop`, in the order of θ."""
 
 _TWO_PI = 2.0 * math.pi
 
@@ -211,7 +216,38 @@ class MCMBounds(eqx.Module):
         ])
 
 
-class DoubleLoopParameterisation(eqx.Module):
+class AbstractParameterisation(eqx.Module):
+    """A map θ ∈ ℝⁿ ↔ controller whose image is the admissible set: what the tuners
+    (:func:`fdjax.tune_local`, :func:`fdjax.tune_robust`) descend on."""
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """Names of θ's entries."""
+        raise NotImplementedError
+
+    def to_controller(self, theta: Float[ArrayLike, " n"]) -> AbstractController:
+        """The controller of θ."""
+        raise NotImplementedError
+
+    def from_controller(self, controller: AbstractController) -> Float[Array, " n"]:
+        """θ of a controller (the inverse of :meth:`to_controller`)."""
+        raise NotImplementedError
+
+
+def _reference_scales(where: str, values, names) -> tuple[float, ...]:
+    if not all(is_concrete(v) for v in values):
+        raise TypeError(f"`{where}` needs concrete gains")
+    scales = tuple(float(v) for v in values)
+    for name, v in zip(names, scales):
+        if v == 0.0 or not math.isfinite(v):
+            raise ValueError(
+                f"`{where}`: {name} sets the scale of its parameter and must be finite and "
+                f"nonzero, got {v:.6g}"
+            )
+    return scales
+
+
+class DoubleLoopParameterisation(AbstractParameterisation):
     r"""θ ∈ ℝ¹² ↔ a :class:`fdjax.DoubleLoop` with an MCM (one peak, one notch):
 
         k_p = k_p,ref e^{θ₀},  k_v = k_v,ref e^{θ₁},  k_i = k_i,ref e^{θ₂},
@@ -219,13 +255,16 @@ class DoubleLoopParameterisation(eqx.Module):
 
     so that θ = (0, 0, 0, 1, 1, …) is the reference gains, every entry is of order one and every
     θ gives an admissible controller (:class:`MCMBounds`).  The reference values are static
-    numbers (the scales of the problem), not tunable leaves.
+    numbers (the scales of the problem), not tunable leaves.  With ``feedforward=False`` the
+    loop has no feed-forward (k_ffv = k_ffa = 0 whatever θ₃, θ₄): a feedback-only design.
     """
 
     mcm: MCMBounds
     reference: tuple[float, float, float, float, float] = eqx.field(static=True)
+    feedforward: bool = eqx.field(static=True)
 
-    def __init__(self, mcm: MCMBounds, reference: DoubleLoop | None = None):
+    def __init__(self, mcm: MCMBounds, reference: DoubleLoop | None = None, *,
+                 feedforward: bool = True):
         if not isinstance(mcm, MCMBounds):
             raise TypeError(
                 f"`DoubleLoopParameterisation(mcm=...)` must be an fdjax.MCMBounds, got "
@@ -238,17 +277,12 @@ class DoubleLoopParameterisation(eqx.Module):
                 f"{type(ref).__name__}"
             )
         vals = [ref.kp, ref.kv, ref.ki, ref.k_ffv, ref.k_ffa]
-        if not all(is_concrete(v) for v in vals):
-            raise TypeError("`DoubleLoopParameterisation(reference=...)` needs concrete gains")
-        scales = tuple(float(v) for v in vals)
-        for name, v in zip(GAIN_PARAMETERS[3:], scales[3:]):
-            if v == 0.0 or not math.isfinite(v):
-                raise ValueError(
-                    f"`DoubleLoopParameterisation(reference=...)`: {name} sets the scale of its "
-                    f"parameter and must be finite and nonzero, got {v:.6g}"
-                )
+        if not feedforward:
+            vals = vals[:3] + [1.0, 1.0]
+        self.feedforward = bool(feedforward)
         self.mcm = mcm
-        self.reference = scales
+        self.reference = _reference_scales("DoubleLoopParameterisation(reference=...)", vals,
+                                           GAIN_PARAMETERS)
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -264,8 +298,10 @@ class DoubleLoopParameterisation(eqx.Module):
                 f"got {th.shape}"
             )
         kp, kv, ki, ffv, ffa = self.reference
+        on = 1.0 if self.feedforward else 0.0
         return DoubleLoop(kp * jnp.exp(th[0]), kv * jnp.exp(th[1]), ki * jnp.exp(th[2]),
-                          k_ffv=ffv * th[3], k_ffa=ffa * th[4], mcm=self.mcm.to_mcm(th[5:]))
+                          k_ffv=on * ffv * th[3], k_ffa=on * ffa * th[4],
+                          mcm=self.mcm.to_mcm(th[5:]))
 
     def from_controller(self, loop: DoubleLoop) -> Float[Array, " 12"]:
         """θ of a double loop whose MCM lies inside the bounds (inverse of
@@ -276,6 +312,84 @@ class DoubleLoopParameterisation(eqx.Module):
                 f"fdjax.DoubleLoop, got {type(loop).__name__}"
             )
         kp, kv, ki, ffv, ffa = self.reference
+        ff = ((loop.k_ffv / ffv, loop.k_ffa / ffa) if self.feedforward
+              else (jnp.ones(()), jnp.ones(())))
         gains = jnp.stack([loop.log_kp - math.log(kp), loop.log_kv - math.log(kv),
-                           loop.log_ki - math.log(ki), loop.k_ffv / ffv, loop.k_ffa / ffa])
+                           loop.log_ki - math.log(ki), *ff])
         return jnp.concatenate([gains, self.mcm.from_mcm(loop.mcm)])
+
+
+class PIDParameterisation(AbstractParameterisation):
+    r"""θ ∈ ℝ⁶ ↔ a :class:`fdjax.PIDLoop` (:data:`fdjax.PID_PARAMETERS`):
+
+        k_p = k_p,ref e^{θ₀},  k_i = k_i,ref e^{θ₁},  k_d = k_d,ref e^{θ₂},
+        ω_d = ω_lo (ω_hi/ω_lo)^{σ(θ₃)},  k_ffv = k_ffv,ref θ₄,  k_ffa = k_ffa,ref θ₅,
+
+    the derivative filter's corner ω_d inside (``wd_hz`` bounds) below the servo's Nyquist
+    frequency, so every θ gives a PID the sampled loop can run.  The reference values are
+    static scales; θ = (0, 0, 0, ·, 1, 1) is the reference PID.  With ``feedforward=False``
+    k_ffv = k_ffa = 0 whatever θ₄, θ₅ (a feedback-only design).
+
+    Attributes:
+        reference: (k_p, k_i, k_d, k_ffv, k_ffa) of the reference PID (static).
+        wd_hz: (low, high) bound of ω_d/2π (Hz), static.
+        feedforward: whether θ₄, θ₅ set the feed-forward gains (static).
+    """
+
+    reference: tuple[float, float, float, float, float] = eqx.field(static=True)
+    wd_hz: tuple[float, float] = eqx.field(static=True)
+    feedforward: bool = eqx.field(static=True)
+
+    def __init__(self, reference: PIDLoop, *, servo: Servo | None = None,
+                 wd_hz: tuple[float, float] | None = None, feedforward: bool = True):
+        where = "PIDParameterisation(reference=...)"
+        if not isinstance(reference, PIDLoop):
+            raise TypeError(f"`{where}` must be an fdjax.PIDLoop, got "
+                            f"{type(reference).__name__}")
+        vals = [reference.kp, reference.ki, reference.kd, reference.k_ffv, reference.k_ffa]
+        if not feedforward:
+            vals = vals[:3] + [1.0, 1.0]
+        self.feedforward = bool(feedforward)
+        self.reference = _reference_scales(where, vals, ("kp", "ki", "kd", "k_ffv", "k_ffa"))
+        sv = Servo() if servo is None else servo
+        if wd_hz is None:
+            wd_hz = (10.0, 0.9 * 0.5 / float(sv.period))
+        lo, hi = _pair(wd_hz, "PIDParameterisation(wd_hz=...)")
+        if hi >= 0.5 / float(sv.period):
+            raise ValueError(
+                f"`PIDParameterisation(wd_hz=...)` must stay below the Nyquist frequency "
+                f"{0.5 / float(sv.period):.6g} Hz, got high = {hi:.6g} Hz"
+            )
+        self.wd_hz = (lo, hi)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """Names of θ's entries."""
+        return PID_PARAMETERS
+
+    def to_controller(self, theta: Float[ArrayLike, " 6"]) -> PIDLoop:
+        """The PID of θ (class docstring)."""
+        th = jnp.asarray(theta, jnp.float64)
+        if th.shape != (6,):
+            raise ValueError(
+                f"`PIDParameterisation.to_controller(theta=...)` must have shape (6,), got "
+                f"{th.shape}"
+            )
+        kp, ki, kd, ffv, ffa = self.reference
+        wd = _box(th[3], _TWO_PI * self.wd_hz[0], _TWO_PI * self.wd_hz[1])
+        on = 1.0 if self.feedforward else 0.0
+        return PIDLoop(kp * jnp.exp(th[0]), ki * jnp.exp(th[1]), kd * jnp.exp(th[2]), wd,
+                       k_ffv=on * ffv * th[4], k_ffa=on * ffa * th[5])
+
+    def from_controller(self, loop: PIDLoop) -> Float[Array, " 6"]:
+        """θ of a PID whose ω_d lies inside the bounds (inverse of :meth:`to_controller`)."""
+        where = "PIDParameterisation.from_controller(loop=...)"
+        if not isinstance(loop, PIDLoop):
+            raise TypeError(f"`{where}` must be an fdjax.PIDLoop, got {type(loop).__name__}")
+        kp, ki, kd, ffv, ffa = self.reference
+        lo, hi = _TWO_PI * self.wd_hz[0], _TWO_PI * self.wd_hz[1]
+        return jnp.stack([loop.log_kp - math.log(kp), loop.log_ki - math.log(ki),
+                          loop.log_kd - math.log(kd),
+                          _unbox(loop.wd, lo, hi, "the derivative corner ω_d (rad/s)", where),
+                          *((loop.k_ffv / ffv, loop.k_ffa / ffa) if self.feedforward
+                            else (jnp.ones(()), jnp.ones(())))])

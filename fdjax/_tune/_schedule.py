@@ -30,7 +30,8 @@ from .._control._controllers import AbstractController, DoubleLoop, Law
 from .._filters import MCM
 from ._parameterisation import MCM_PARAMETERS, MCMBounds
 
-__all__ = ["ATANetwork", "ScheduledLoop", "fit_network", "save_schedule", "load_schedule"]
+__all__ = ["ATANetwork", "ScheduledLoop", "InterpolatedLoop", "fit_network", "save_schedule",
+           "load_schedule"]
 
 _FORMAT = "fdjax-schedule/1"
 
@@ -134,6 +135,64 @@ class ScheduledLoop(AbstractController):
         """The law of :meth:`controller` at the table position."""
         if position_m is None:
             raise ValueError("`ScheduledLoop.law(position_m=...)` needs the table position (m)")
+        return self.controller(position_m).law(position_m)
+
+
+class InterpolatedLoop(AbstractController):
+    r"""A double loop whose MCM is interpolated linearly, parameter by parameter, between local
+    designs in the normalised form of :class:`MCMBounds` (the baseline a scheduling network
+    must beat):
+
+        θ(Y) = θ_i + (θ_{i+1} − θ_i)(Y − Y_i)/(Y_{i+1} − Y_i),  Y_i ≤ Y ≤ Y_{i+1},
+
+    held at the end designs outside [Y_1, Y_n]; MCM(Y) = ``bounds.to_mcm(θ(Y))``.
+
+    Attributes:
+        loop: the double loop that carries the gains (its own MCM is not used).
+        positions_m: the design positions Y_i (m), increasing, (n,).
+        theta: the normalised MCM parameters θ_i, (n, 7).
+        bounds: the admissible filters (static numbers).
+    """
+
+    loop: DoubleLoop
+    positions_m: Float[Array, " n"]
+    theta: Float[Array, "n 7"]
+    bounds: MCMBounds
+
+    def __init__(self, loop: DoubleLoop, positions_m, theta, bounds: MCMBounds):
+        if not isinstance(loop, DoubleLoop):
+            raise TypeError(f"`InterpolatedLoop(loop=...)` must be an fdjax.DoubleLoop, got "
+                            f"{type(loop).__name__}")
+        if not isinstance(bounds, MCMBounds):
+            raise TypeError(f"`InterpolatedLoop(bounds=...)` must be an fdjax.MCMBounds, got "
+                            f"{type(bounds).__name__}")
+        y = jnp.asarray(positions_m, jnp.float64)
+        t = jnp.asarray(theta, jnp.float64)
+        if y.ndim != 1 or y.shape[0] < 2 or t.shape != (y.shape[0], len(MCM_PARAMETERS)):
+            raise ValueError(f"`InterpolatedLoop(positions_m=..., theta=...)` must have shapes "
+                             f"(n,) and (n, 7) with n ≥ 2, got {y.shape} and {t.shape}")
+        if not bool(jnp.all(jnp.diff(y) > 0)):
+            raise ValueError("`InterpolatedLoop(positions_m=...)` must be increasing, got "
+                             f"{[float(v) for v in y]}")
+        self.loop = eqx.tree_at(lambda c: c.mcm, loop, MCM())
+        self.positions_m = y
+        self.theta = t
+        self.bounds = bounds
+
+    def normalised(self, position_m: Float[ArrayLike, ""]) -> Float[Array, " 7"]:
+        """θ(Y) (class docstring)."""
+        y = jnp.asarray(position_m, jnp.float64)
+        return jax.vmap(lambda col: jnp.interp(y, self.positions_m, col))(self.theta.T)
+
+    def controller(self, position_m: Float[ArrayLike, ""]) -> DoubleLoop:
+        """The fixed double loop at table position Y (m)."""
+        mcm = self.bounds.to_mcm(self.normalised(position_m))
+        return eqx.tree_at(lambda c: c.mcm, self.loop, mcm)
+
+    def law(self, position_m) -> Law:
+        """The law of :meth:`controller` at the table position."""
+        if position_m is None:
+            raise ValueError("`InterpolatedLoop.law(position_m=...)` needs the table position (m)")
         return self.controller(position_m).law(position_m)
 
 

@@ -1,0 +1,217 @@
+r"""Certification of a controller between its design points: stability from the eigenvalues of
+the sampled closed loop and the exact sampled margins on a fine grid of table positions (every
+1 mm by default), the worst position named.
+
+A gain schedule tuned at design points says nothing about the positions between them; here the
+loop is checked where it will run.  At every position Y_k of the grid:
+
+    stable_k   = max |z| < 1 over the sampled closed loop's poles (:func:`fdjax.check_stability`),
+    GM_k, PM_k, MM_k = the margins of :func:`fdjax.loop_margins` (sampled loop), the least of
+                       the break points (plant input, speed feedback, scale),
+
+and the controller passes when every position is stable with |GM| ≥ GM_min, |PM| ≥ PM_min and
+MM ≥ MM_min (gain margin in the log sense: a phase crossover 6 dB away in either direction).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import ArrayLike, Float
+
+from .._analysis import check_stability, loop_margins
+from .._control._controllers import AbstractController
+from .._control._servo import Servo
+from .._drive._model import BallScrewDrive
+from .._drive._twin import TwinOptions, state_space
+from .._simulation import SampledData, simulate
+from .._trajectory import Trajectory
+from ._schedule import InterpolatedLoop, ScheduledLoop
+
+__all__ = ["Certificate", "certify"]
+
+
+class Certificate(eqx.Module):
+    """Result of :func:`certify` (NumPy arrays over the positions).
+
+    Attributes:
+        positions_m: the grid (m).
+        stable: the sampled closed loop is stable at each position.
+        growth_rate: growth rate of the least stable pole (1/s; negative when stable).
+        gain_margin_db, phase_margin_deg, modulus_margin: the least over the break points.
+        requirements: (GM_min dB, PM_min °, MM_min).
+        passed: per position, stable with every margin met.
+    """
+
+    positions_m: np.ndarray
+    stable: np.ndarray
+    growth_rate: np.ndarray
+    gain_margin_db: np.ndarray
+    phase_margin_deg: np.ndarray
+    modulus_margin: np.ndarray
+    passed: np.ndarray
+    requirements: tuple[float, float, float] = eqx.field(static=True)
+
+    @property
+    def ok(self) -> bool:
+        """Every position passes."""
+        return bool(np.all(self.passed))
+
+    def worst(self, what: str = "modulus_margin") -> tuple[float, float]:
+        """(position (m), value) where ``what`` (a margin) is least; an unstable position
+        counts as the least of all."""
+        v = np.asarray(getattr(self, what), float)
+        if what == "gain_margin_db":
+            v = np.abs(v)
+        elif what == "phase_margin_deg":
+            v = np.abs(v)
+        v = np.where(self.stable, v, -np.inf)
+        k = int(np.argmin(v))
+        return float(self.positions_m[k]), float(np.asarray(getattr(self, what))[k])
+
+    @property
+    def message(self) -> str:
+        """One paragraph: passed or failed, where, and the least margins with their positions."""
+        gm, pm, mm = self.requirements
+        n = self.positions_m.size
+        span = f"{self.positions_m[0] * 1e3:.0f}–{self.positions_m[-1] * 1e3:.0f} mm"
+        head = (f"certified at {n} positions ({span})" if self.ok else
+                f"NOT certified: {int(np.sum(~self.passed))} of {n} positions ({span}) fail")
+        parts = [head]
+        if not np.all(self.stable):
+            bad = self.positions_m[~self.stable]
+            parts.append(f"unstable at {bad.size} positions, first {bad[0] * 1e3:.0f} mm, last "
+                         f"{bad[-1] * 1e3:.0f} mm")
+        for what, unit, req in (("gain_margin_db", " dB", gm), ("phase_margin_deg", "°", pm),
+                                ("modulus_margin", "", mm)):
+            y, v = self.worst(what)
+            parts.append(f"least {what.replace('_', ' ')} {v:.3g}{unit} at {y * 1e3:.0f} mm "
+                         f"(required {req:g}{unit})")
+        return "; ".join(parts)
+
+    def rows(self) -> dict[str, list]:
+        """Columns of a CSV or JSON table, one row per position."""
+        return {"position_mm": (self.positions_m * 1e3).tolist(),
+                "stable": self.stable.tolist(), "growth_rate_per_s": self.growth_rate.tolist(),
+                "gain_margin_db": self.gain_margin_db.tolist(),
+                "phase_margin_deg": self.phase_margin_deg.tolist(),
+                "modulus_margin": self.modulus_margin.tolist(), "passed": self.passed.tolist()}
+
+
+def _least(m, attr, absolute=False):
+    vals = []
+    for loop in (m.plant_input, m.speed, m.position):
+        if loop is not None:
+            v = getattr(loop, attr)
+            vals.append(jnp.abs(v) if absolute else v)
+    return jnp.min(jnp.stack(vals), axis=0)
+
+
+def fixed_controllers(controller: AbstractController, positions_m) -> AbstractController:
+    """The fixed controllers a (scheduled) controller runs at each position, stacked along a
+    leading axis: ``controller.controller(Y)`` for a scheduled loop, ``controller`` repeated
+    otherwise.  One compiled program then serves every controller of the same kind."""
+    y = jnp.asarray(positions_m, jnp.float64)
+    if isinstance(controller, (ScheduledLoop, InterpolatedLoop)):
+        return jax.vmap(controller.controller)(y)
+    arrays, static = eqx.partition(controller, eqx.is_array)
+    arrays = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, y.shape + x.shape), arrays)
+    return eqx.combine(arrays, static)
+
+
+def point_checks(controllers: AbstractController, drive: BallScrewDrive, positions_m, *,
+                 servo: Servo, freq_hz, twin: TwinOptions, motion: Trajectory | None = None):
+    """For each pair (controller_k, Y_k) of stacked fixed controllers and positions: stability
+    (growth rate of the least stable pole), the least margins over the break points and, with
+    ``motion``, the RMS scale error of its sampled-data simulation.  Dict of arrays."""
+    return _point_checks(controllers, drive, jnp.asarray(positions_m, jnp.float64), servo,
+                         jnp.asarray(freq_hz, jnp.float64), twin, motion,
+                         None if motion is None else float(motion.duration))
+
+
+@eqx.filter_jit
+def _point_checks(controllers, drive, ys, servo, f, twin, motion, duration):
+    def one(args):
+        c, y = args
+        plant = state_space(drive, y, twin=twin)
+        st = check_stability(c, plant, servo=servo)
+        m = loop_margins(c, plant, f, servo=servo)
+        out = {"growth": st.growth_rate, "stable": st.stable,
+               "gm": _least(m, "gain_margin_db", absolute=True),
+               "pm": _least(m, "phase_margin_deg", absolute=True),
+               "mm": _least(m, "modulus_margin")}
+        if motion is not None:
+            sim = simulate(c, plant, motion, SampledData(), servo=servo, duration=duration,
+                           throw=False)
+            out["rms"] = sim.rms_error("scale")
+        return out
+
+    return jax.lax.map(one, (controllers, ys))
+
+
+def default_grid(servo: Servo) -> np.ndarray:
+    """The margins' default frequency grid: 2000 points log-spaced from 5 Hz to 0.995 of the
+    servo's Nyquist frequency."""
+    return np.geomspace(5.0, 0.995 * 0.5 / float(servo.period), 2000)
+
+
+def certificate(y, checks, gain_margin_db=6.0, phase_margin_deg=30.0,
+                modulus_margin=0.5) -> Certificate:
+    """A :class:`Certificate` from the arrays of :func:`point_checks`."""
+    c = {k: np.asarray(v) for k, v in checks.items()}
+    stable = c["stable"].astype(bool)
+    passed = (stable & (c["gm"] >= gain_margin_db) & (c["pm"] >= phase_margin_deg)
+              & (c["mm"] >= modulus_margin))
+    return Certificate(np.asarray(y, float), stable, c["growth"], c["gm"], c["pm"], c["mm"],
+                       passed, (float(gain_margin_db), float(phase_margin_deg),
+                                float(modulus_margin)))
+
+
+def certify(
+    controller: AbstractController,
+    drive: BallScrewDrive,
+    positions_m: Float[ArrayLike, " n"] | None = None,
+    *,
+    servo: Servo = Servo(),
+    freq_hz: Float[ArrayLike, " freq"] | None = None,
+    twin: TwinOptions | None = None,
+    gain_margin_db: float = 6.0,
+    phase_margin_deg: float = 30.0,
+    modulus_margin: float = 0.5,
+) -> Certificate:
+    r"""Stability and the exact sampled margins of ``controller`` on a grid of table positions
+    (module docstring); by default every 1 mm over the drive's travel.
+
+    Args:
+        controller: any controller (a scheduled one is evaluated at each position).
+        drive: the drive.
+        positions_m: the grid (m), inside the travel; default every 1 mm.
+        servo: the servo hardware.
+        freq_hz: the margins' frequency grid, below Nyquist (default :func:`default_grid`).
+        twin: how the drive becomes its twin (default: every mode in the twin's band, counted
+            over the travel).
+        gain_margin_db, phase_margin_deg, modulus_margin: the requirements.
+    """
+    fn = "certify"
+    if not isinstance(controller, AbstractController):
+        raise TypeError(f"`{fn}(controller=...)` must be an fdjax controller, got "
+                        f"{type(controller).__name__}")
+    if not isinstance(drive, BallScrewDrive):
+        raise TypeError(f"`{fn}(drive=...)` must be an fdjax.BallScrewDrive, got "
+                        f"{type(drive).__name__}")
+    if not isinstance(servo, Servo):
+        raise TypeError(f"`{fn}(servo=...)` must be an fdjax.Servo, got {type(servo).__name__}")
+    lo, hi = drive.travel_m
+    if positions_m is None:
+        positions_m = np.linspace(lo, hi, int(round((hi - lo) / 1e-3)) + 1)
+    y = np.atleast_1d(np.asarray(positions_m, float))
+    if y.ndim != 1:
+        raise ValueError(f"`{fn}(positions_m=...)` must be 1-D, got shape {y.shape}")
+    y = np.asarray(drive._check_travel(y, fn))
+    f = default_grid(servo) if freq_hz is None else np.asarray(freq_hz, float)
+    twin = (TwinOptions() if twin is None else twin).resolve(drive, fn)
+    checks = point_checks(fixed_controllers(controller, y), drive, y, servo=servo, freq_hz=f,
+                          twin=twin)
+    return certificate(y, checks, gain_margin_db, phase_margin_deg, modulus_margin)

@@ -1,0 +1,112 @@
+r"""End-to-end training of the scheduling network (paper Sec. 4.2 trains it on six local designs;
+here it is trained against the tuning objective itself, over the whole travel).
+
+At every step a batch of B positions is drawn across the travel, stratified,
+
+    Y_b = Y_min + (Y_max − Y_min)(b + u_b)/B,   u_b ~ U(0, 1),   b = 0 … B−1,
+
+and the network's weights (optionally the loop's gains) descend
+
+    ½ (mean_b J(schedule, Y_b) + smax_β J(schedule, Y_b))
+
+(:class:`fdjax.Objective`, :func:`fdjax.smooth_max`), all positions in one ``vmap``.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import optax
+from jaxtyping import PRNGKeyArray
+
+from .._drive._model import BallScrewDrive
+from ._local import Descent, descend, smooth_max
+from ._objective import Objective
+from ._schedule import ScheduledLoop
+
+__all__ = ["train_schedule"]
+
+
+class _EndToEndLoss(eqx.Module):
+    static: ScheduledLoop
+    objective: Objective
+    drive: BallScrewDrive
+    travel: tuple[float, float] = eqx.field(static=True)
+    batch: int = eqx.field(static=True)
+    sharpness: float = eqx.field(static=True)
+
+    def __call__(self, params, key):
+        schedule = eqx.combine(params, self.static)
+        lo, hi = self.travel
+        u = jax.random.uniform(key, (self.batch,), jnp.float64)
+        y = lo + (hi - lo) * (jnp.arange(self.batch) + u) / self.batch
+        y = jnp.clip(y, lo, hi)
+        j = jax.vmap(lambda p: self.objective(schedule, self.drive, p).total)(y)
+        return 0.5 * (jnp.mean(j) + smooth_max(j, self.sharpness)), jnp.max(j)
+
+
+def train_schedule(
+    schedule: ScheduledLoop,
+    objective: Objective,
+    drive: BallScrewDrive,
+    *,
+    steps: int = 200,
+    batch: int = 8,
+    key: PRNGKeyArray | None = None,
+    optimiser: optax.GradientTransformation | None = None,
+    train_gains: bool = False,
+    sharpness: float = 2.0,
+    chunk: int = 25,
+    progress: bool = False,
+) -> tuple[ScheduledLoop, Descent]:
+    r"""Train a schedule end to end against the objective over the travel (module docstring),
+    from ``schedule`` (e.g. the network fitted to local designs by :func:`fdjax.fit_network`).
+
+    Args:
+        schedule: the scheduled loop to start from.
+        objective: J(controller, Y).
+        drive: the drive (positions are drawn over its travel).
+        steps: optimiser steps; batch: positions per step (≥ 2).
+        key: PRNG key of the position draws (default ``PRNGKey(0)``).
+        optimiser: an optax transformation (default ``optax.adam(3e-3)``).
+        train_gains: also train the loop's gains (k_p, k_v, k_i, feed-forward).
+        sharpness: β of the smooth maximum over the batch.
+        chunk, progress: as :func:`fdjax.tune_local`.
+
+    Returns:
+        The schedule of the lowest batch objective seen, and the :class:`Descent` record
+        (``history``: the batch objective per step, ``aux``: the batch's worst J).
+    """
+    fn = "train_schedule"
+    if not isinstance(schedule, ScheduledLoop):
+        raise TypeError(f"`{fn}(schedule=...)` must be an fdjax.ScheduledLoop, got "
+                        f"{type(schedule).__name__}")
+    if not isinstance(objective, Objective):
+        raise TypeError(f"`{fn}(objective=...)` must be an fdjax.Objective, got "
+                        f"{type(objective).__name__}")
+    if not isinstance(drive, BallScrewDrive):
+        raise TypeError(f"`{fn}(drive=...)` must be an fdjax.BallScrewDrive, got "
+                        f"{type(drive).__name__}")
+    for name, value, least in (("steps", steps, 1), ("batch", batch, 2), ("chunk", chunk, 1)):
+        if not (isinstance(value, int) and value >= least):
+            raise ValueError(f"`{fn}({name}=...)` must be an int ≥ {least}, got {value!r}")
+    if not (isinstance(sharpness, (int, float)) and sharpness > 0):
+        raise ValueError(f"`{fn}(sharpness=...)` must be a positive number, got {sharpness!r}")
+    spec = jax.tree_util.tree_map(lambda _: False, schedule)
+    spec = eqx.tree_at(lambda s: s.network, spec,
+                       jax.tree_util.tree_map(eqx.is_inexact_array, schedule.network))
+    if train_gains:
+        gains = lambda s: (s.loop.log_kp, s.loop.log_kv, s.loop.log_ki, s.loop.k_ffv,  # noqa: E731
+                           s.loop.k_ffa)
+        spec = eqx.tree_at(gains, spec, (True,) * 5)
+    params, static = eqx.partition(schedule, spec)
+    loss = _EndToEndLoss(static, objective, drive, tuple(float(v) for v in drive.travel_m),
+                         batch, float(sharpness))
+    opt = optax.adam(3e-3) if optimiser is None else optimiser
+    key = jax.random.PRNGKey(0) if key is None else key
+    res = descend(loss, params, opt, steps, chunk=chunk, key=key,
+                  progress=fn if progress else None)
+    return eqx.combine(res.best, static), res
+
+

@@ -1,0 +1,254 @@
+r"""The whole gradient synthesis of paper Sec. 4.2 and Fig. 18 on one drive, as one function.
+
+1. **Local designs**: the full double loop (gains and MCM) tuned by :func:`tune_local` at six
+   positions over the travel and at 115 mm (the fixed MCM of Fig. 18), from the reference
+   controller with k_v halved (stable at every position).
+2. **Common gains**: one gain set and one MCM per design position (:func:`tune_shared_gains`),
+   what a schedule of the filters needs.
+3. **Baselines**: a PID tuned at 115 mm (:func:`tune_local`), the robust PID
+   (:func:`tune_robust` over 13 positions), the MCM tuned at 115 mm held fixed, the six MCMs
+   interpolated linearly in their normalised parameters (:class:`InterpolatedLoop`).
+4. **The ATA network** fitted to the six MCMs by backpropagation (:func:`fit_network`), then
+   **trained end to end** against the objective over the travel (:func:`train_schedule`).
+5. **Evaluation**: RMS error, stability and the exact sampled margins of every controller on a
+   grid of positions (:func:`evaluate`, :func:`certify`).
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from dataclasses import dataclass, field
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._control._controllers import AbstractController
+from .._control._reference import (
+    reference_controller,
+    reference_pid,
+    reference_servo,
+    rigid_feedforward,
+)
+from .._control._servo import Servo
+from .._drive._model import BallScrewDrive
+from .._drive._reference import reference_drive
+from .._drive._twin import TwinOptions
+from .._trajectory import Trajectory, reciprocating
+from ._certify import certificate, default_grid, fixed_controllers, point_checks
+from ._end_to_end import train_schedule
+from ._local import Descent, LocalTuning, RobustTuning, tune_local, tune_robust, tune_shared_gains
+from ._objective import Objective
+from ._parameterisation import DoubleLoopParameterisation, MCMBounds, PIDParameterisation
+from ._schedule import ATANetwork, InterpolatedLoop, ScheduledLoop, fit_network
+
+__all__ = ["CONTROLLERS", "Synthesis", "synthesise", "evaluate", "tuning_motion",
+           "tuning_objective"]
+
+CONTROLLERS = ("pid_115", "pid_robust", "mcm_fixed", "mcm_interp", "mcm_ata", "mcm_ata_e2e")
+"""The controllers of Fig. 18, in the order of the figure's legend."""
+
+LABELS = {
+    "pid_115": "PID tuned at 115 mm",
+    "pid_robust": "robust PID",
+    "mcm_fixed": "MCM tuned at 115 mm, fixed",
+    "mcm_interp": "local MCMs interpolated",
+    "mcm_ata": "MCM + ATA (backpropagation)",
+    "mcm_ata_e2e": "MCM + ATA (end to end)",
+}
+
+DESIGN_POSITIONS_M = tuple(float(v) for v in np.linspace(0.1, 0.7, 6))
+FIXED_POSITION_M = 0.115
+
+
+def tuning_motion() -> Trajectory:
+    """The motion the controllers are tuned on: a 1 mm reciprocating stroke at 50 mm/s,
+    2 m/s², 400 m/s³ (0.1 s), the short-stroke motion of Figs. 16–17 shortened."""
+    return reciprocating(stroke=1e-3, v_max=0.05, a_max=2.0, j_max=400.0, cycles=1)
+
+
+def tuning_objective(servo: Servo | None = None, *, kept_modes: int = 6) -> Objective:
+    """The objective of the synthesis: :class:`Objective` on :func:`tuning_motion`, margins on
+    400 frequencies from 5 Hz to 3.9 kHz, the twin with ``kept_modes`` modes."""
+    return Objective(tuning_motion(), np.geomspace(5.0, 3900.0, 400),
+                     servo=reference_servo() if servo is None else servo,
+                     twin=TwinOptions(kept_modes=kept_modes))
+
+
+@dataclass
+class Synthesis:
+    """Result of :func:`synthesise`.
+
+    Attributes:
+        controllers: the six controllers of Fig. 18 by name (:data:`CONTROLLERS`).
+        schedule_bp, schedule_e2e: the scheduled loops (backpropagation, end to end).
+        local: the full local designs at 115 mm and the six design positions.
+        shared: the six MCMs with common gains.
+        pid_115, pid_robust: the PID tunings.
+        network_loss: the backpropagation loss per step.
+        e2e: the end-to-end training record.
+        seconds: wall time of each stage (s), compilation included.
+    """
+
+    controllers: dict[str, AbstractController]
+    schedule_bp: ScheduledLoop
+    schedule_e2e: ScheduledLoop
+    local: LocalTuning
+    shared: LocalTuning
+    pid_115: LocalTuning
+    pid_robust: RobustTuning
+    network_loss: np.ndarray
+    e2e: Descent
+    bounds: MCMBounds
+    design_positions_m: np.ndarray
+    seconds: dict[str, float] = field(default_factory=dict)
+
+    def local_table(self) -> dict[str, list]:
+        """The local designs (common gains) per design position, physical units."""
+        par = DoubleLoopParameterisation(self.bounds, self.controllers["mcm_fixed"])
+        rows = {k: [] for k in ("position_mm", "kp", "kv", "ki", "k_ffv", "k_ffa", "peak_K",
+                                "peak_freq_hz", "peak_xi", "peak_phi_deg", "notch_freq_hz",
+                                "notch_zeta_n", "notch_zeta_d", "objective")}
+        for y, th, j in zip(self.shared.positions_m, self.shared.best_theta,
+                            self.shared.terms.total):
+            c = par.to_controller(th)
+            pk, nt = c.mcm.peak, c.mcm.notch
+            vals = [float(y) * 1e3, c.kp, c.kv, c.ki, c.k_ffv, c.k_ffa, pk.K[0],
+                    pk.omega[0] / (2 * math.pi), pk.xi[0], math.degrees(float(pk.phi[0])),
+                    nt.omega[0] / (2 * math.pi), nt.zeta_n[0], nt.zeta_d[0], j]
+            for k, v in zip(rows, vals):
+                rows[k].append(float(v))
+        return rows
+
+
+def _say(progress, text):
+    if progress:
+        print(text, file=sys.stderr, flush=True)
+
+
+def synthesise(
+    drive: BallScrewDrive | None = None,
+    *,
+    servo: Servo | None = None,
+    local_steps: int = 300,
+    shared_steps: int = 200,
+    pid_steps: int = 300,
+    network_steps: int = 4000,
+    e2e_steps: int = 200,
+    e2e_batch: int = 8,
+    train_gains: bool = False,
+    progress: bool = True,
+) -> Synthesis:
+    """Run the synthesis of the module docstring on ``drive`` (default
+    :func:`fdjax.reference_drive`) and return every design and training record."""
+    drive = reference_drive() if drive is None else drive
+    if not isinstance(drive, BallScrewDrive):
+        raise TypeError(f"`synthesise(drive=...)` must be an fdjax.BallScrewDrive, got "
+                        f"{type(drive).__name__}")
+    servo = reference_servo() if servo is None else servo
+    seconds = {}
+    obj = tuning_objective(servo)
+    bounds = MCMBounds.for_servo(servo)
+    ref = reference_controller(drive, servo)
+    par = DoubleLoopParameterisation(bounds, ref)
+    start = eqx.tree_at(lambda c: c.log_kv, ref, ref.log_kv + math.log(0.5))
+    design = np.asarray(DESIGN_POSITIONS_M)
+    pos7 = np.concatenate([[FIXED_POSITION_M], design])
+
+    t0 = time.perf_counter()
+    _say(progress, f"local designs at {', '.join(f'{y * 1e3:.0f}' for y in pos7)} mm")
+    local = tune_local(par, obj, drive, pos7, start, steps=local_steps, progress=progress)
+    seconds["local"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    _say(progress, "six MCMs with common gains")
+    shared = tune_shared_gains(par, obj, drive, design, local.best_theta[1:],
+                               steps=shared_steps, progress=progress)
+    seconds["shared"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    k_ffv, k_ffa = rigid_feedforward(drive, servo)
+    pid0 = reference_pid(k_ffv=k_ffv, k_ffa=k_ffa)
+    ppar = PIDParameterisation(pid0, servo=servo)
+    _say(progress, "PID tuned at 115 mm")
+    pid_115 = tune_local(ppar, obj, drive, [FIXED_POSITION_M], pid0, steps=pid_steps,
+                         progress=progress)
+    _say(progress, "robust PID over 13 positions")
+    pid_robust = tune_robust(ppar, obj, drive, np.linspace(0.1, 0.7, 13), pid0,
+                             steps=pid_steps, progress=progress)
+    seconds["pid"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    loop = par.to_controller(shared.best_theta[0])
+    targets = shared.best_theta[:, 5:]
+    net0 = ATANetwork(drive.travel_m, width=8, key=jax.random.PRNGKey(0))
+    net, loss = fit_network(net0, design, targets, steps=network_steps)
+    schedule_bp = ScheduledLoop(loop, net, bounds)
+    seconds["network"] = time.perf_counter() - t0
+    _say(progress, f"ATA network fitted by backpropagation: loss {float(loss[-1]):.3g}")
+
+    t0 = time.perf_counter()
+    _say(progress, "ATA network trained end to end")
+    schedule_e2e, e2e = train_schedule(schedule_bp, obj, drive, steps=e2e_steps,
+                                       batch=e2e_batch, train_gains=train_gains,
+                                       progress=progress)
+    seconds["end_to_end"] = time.perf_counter() - t0
+
+    controllers = {
+        "pid_115": ppar.to_controller(pid_115.best_theta[0]),
+        "pid_robust": ppar.to_controller(pid_robust.best_theta),
+        "mcm_fixed": par.to_controller(local.best_theta[0]),
+        "mcm_interp": InterpolatedLoop(loop, design, targets, bounds),
+        "mcm_ata": schedule_bp,
+        "mcm_ata_e2e": schedule_e2e,
+    }
+    return Synthesis(controllers, schedule_bp, schedule_e2e, local, shared, pid_115,
+                     pid_robust, np.asarray(loss), e2e, bounds, design, seconds)
+
+
+def evaluate(
+    controllers: dict[str, AbstractController],
+    drive: BallScrewDrive,
+    positions_m,
+    *,
+    servo: Servo | None = None,
+    motion: Trajectory | None = None,
+    progress: bool = True,
+) -> dict[str, dict]:
+    """RMS tracking error of ``motion`` (default :func:`tuning_motion`) at the scale on the full
+    twin, stability and the exact sampled margins of each controller at ``positions_m``
+    (:func:`certify`'s checks).  Per controller: ``rms_error_um`` (None where unstable),
+    ``stable``, ``gain_margin_db``, ``phase_margin_deg``, ``modulus_margin`` (lists over the
+    positions) and ``certificate``.  Controllers of the same kind share one compiled program."""
+    servo = reference_servo() if servo is None else servo
+    motion = tuning_motion() if motion is None else motion
+    y = np.asarray(drive._check_travel(np.asarray(positions_m, float), "evaluate"))
+    twin = TwinOptions().resolve(drive, "evaluate")
+    f = default_grid(servo)
+    groups: dict = {}
+    for name, c in controllers.items():
+        fixed = fixed_controllers(c, y)
+        key = jax.tree_util.tree_structure(eqx.filter(fixed, eqx.is_array))
+        groups.setdefault(key, []).append((name, fixed))
+    out = {}
+    for members in groups.values():
+        stacked = jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs),
+                                         *[m[1] for m in members])
+        ys = np.tile(y, len(members))
+        checks = point_checks(stacked, drive, ys, servo=servo, freq_hz=f, twin=twin,
+                              motion=motion)
+        for k, (name, _) in enumerate(members):
+            part = {key: np.asarray(v)[k * y.size:(k + 1) * y.size]
+                    for key, v in checks.items()}
+            cert = certificate(y, part)
+            rms = [float(r) * 1e6 if ok else None for r, ok in zip(part["rms"], cert.stable)]
+            out[name] = {"rms_error_um": rms, "stable": cert.stable.tolist(),
+                         "gain_margin_db": cert.gain_margin_db.tolist(),
+                         "phase_margin_deg": cert.phase_margin_deg.tolist(),
+                         "modulus_margin": cert.modulus_margin.tolist(), "certificate": cert}
+    for name in controllers:
+        _say(progress, f"{name}: {out[name]['certificate'].message}")
+    return {name: out[name] for name in controllers}
