@@ -7,6 +7,10 @@
     fdjax figures [--out DIR]   the paper's figures so far (Figs. 2, 3, 5, 10-12, 14, 16, 17)
     fdjax modes   [--out DIR] [--positions N] [--n-modes N] [--source fit|model]
                                 modes of h21 over the travel: table, CSV and JSON
+    fdjax tune    [--out DIR] [--quick]
+                                gradient synthesis: six local MCMs, PID baselines, the ATA
+                                network by backpropagation and end to end, Fig. 18, the
+                                certificates; writes DIR/schedule.eqx (fdjax.load_schedule)
 """
 
 from __future__ import annotations
@@ -266,7 +270,8 @@ def _loop_line(name: str, m: dict) -> str:
 def reproduce(out: str, quick: bool = False) -> dict:
     """The whole chain on the reference drive: every figure so far, and ``summary.json``.
 
-    ``quick`` sweeps 13 table positions instead of 61 (Figs. 10-12, 14 and the margins)."""
+    ``quick`` sweeps 13 table positions instead of 61 (Figs. 10-12, 14 and the margins) and
+    evaluates the designs shipped with fdjax for Fig. 18 instead of tuning them."""
     import numpy as np
 
     import fdjax
@@ -290,6 +295,15 @@ def reproduce(out: str, quick: bool = False) -> dict:
     rms = simulation_figures(out)
     print(f"Reciprocating motion at {FIG16_POSITION_M * 1e3:.0f} mm, RMS scale error (µm): "
           + ", ".join(f"{k} {v * 1e6:.3g}" for k, v in rms.items()))
+    if quick:
+        print("Gradient synthesis: the designs shipped with fdjax (made by `fdjax tune`); "
+              "`fdjax reproduce` without --quick tunes them afresh", flush=True)
+        shipped, _ = fdjax.load_designs(SHIPPED_DESIGNS)
+        control = control_report(out, shipped, certify_step_mm=None,
+                                 metadata={"source": "shipped designs"})
+    else:
+        syn = fdjax.synthesise(progress=True)
+        control = control_report(out, syn.controllers, synthesis=syn, certify_step_mm=1.0)
     disc = discretisation_summary()
     err = disc["max_relative_error"]
     print(f"Reference MCM at {1e-3 / servo.period:.0f} kHz, error below Nyquist/4: fitted "
@@ -309,6 +323,7 @@ def reproduce(out: str, quick: bool = False) -> dict:
                      "motion": "reciprocating, 5 mm, 0.1 m/s, 2 m/s², 200 m/s³, 2 cycles",
                      "rms_scale_error_m": rms},
         "mcm_discretisation": disc,
+        "control": control,
         "figures": sorted(n for n in os.listdir(out) if n.endswith(".png")),
         "seconds": time.perf_counter() - start,
     }
@@ -316,6 +331,131 @@ def reproduce(out: str, quick: bool = False) -> dict:
         json.dump(summary, fh, indent=1)
     print(f"figures and summary.json written to {out}/ in {summary['seconds']:.0f} s")
     return summary
+
+
+# Where the designs shipped with fdjax live (written by `fdjax tune`).
+SHIPPED_DESIGNS = os.path.join(os.path.dirname(__file__), "data", "reference_designs")
+FIG18_POSITIONS_M = tuple(round(0.1 + 0.01 * k, 10) for k in range(61))
+
+
+def _write_csv(path: str, cols: dict) -> None:
+    keys = list(cols)
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(keys)
+        for row in zip(*(cols[k] for k in keys)):
+            w.writerow(["" if v is None else v for v in row])
+
+
+def _finite_or_none(values) -> list:
+    import math
+
+    return [None if v is None or not math.isfinite(float(v)) else float(v) for v in values]
+
+
+def control_report(out: str, controllers: dict, *, certify_step_mm: float | None,
+                   synthesis=None, metadata: dict | None = None) -> dict:
+    """Fig. 18 and its table for ``controllers`` (:data:`fdjax.CONTROLLERS`): RMS error,
+    stability and the sampled margins every 10 mm; the scheduled controllers certified every
+    ``certify_step_mm`` (None: on the Fig. 18 grid only); the schedule files, the designs, the
+    filter tables; the convergence curves when ``synthesis`` is given.  Returns the summary's
+    ``control`` entry."""
+    import numpy as np
+
+    import fdjax
+    from fdjax import plots
+    from fdjax._tune._synthesis import DESIGN_POSITIONS_M, LABELS
+
+    drive = fdjax.reference_drive()
+    os.makedirs(out, exist_ok=True)
+    meta = {"drive": "fdjax.reference_drive()", "servo": "fdjax.Servo() (8 kHz, d = 2)",
+            "objective": "fdjax.tuning_objective(): RMS scale error of a 1 mm reciprocating "
+                         "stroke + margin, stability and current penalties",
+            "feedforward": False, **(metadata or {})}
+    fdjax.save_designs(out, controllers, metadata=meta)
+    fdjax.save_schedule(os.path.join(out, "schedule.eqx"), controllers["mcm_ata_e2e"],
+                        metadata={**meta, "trained": "end to end"})
+    fdjax.save_schedule(os.path.join(out, "schedule_bp.eqx"), controllers["mcm_ata"],
+                        metadata={**meta, "trained": "backpropagation on the local designs"})
+    y = np.asarray(FIG18_POSITIONS_M)
+    table = controllers["mcm_ata_e2e"].filter_table(y)
+    _write_csv(os.path.join(out, "filters.csv"), table)
+    with open(os.path.join(out, "filters.json"), "w") as fh:
+        json.dump(table, fh, indent=1)
+    print(f"Fig. 18: {len(controllers)} controllers at {y.size} positions (RMS, stability, "
+          "sampled margins)", flush=True)
+    ev = fdjax.evaluate(controllers, drive, y, progress=False)
+    plots.plot_rms_over_travel(
+        y * 1e3, ev, labels=LABELS, design_mm=[v * 1e3 for v in DESIGN_POSITIONS_M],
+        title="RMS tracking error over the travel, feedback only (paper Fig. 18)",
+    ).savefig(os.path.join(out, "fig18_rms_over_travel.png"), dpi=100)
+    control = {"positions_mm": (y * 1e3).round(6).tolist(),
+               "motion": "1 mm reciprocating stroke, 50 mm/s, 2 m/s², 400 m/s³ (0.1 s)",
+               "feedforward": False}
+    for name, r in ev.items():
+        control[name] = {"label": LABELS.get(name, name),
+                         "rms_error_um": _finite_or_none(r["rms_error_um"]),
+                         "stable": r["stable"],
+                         "gain_margin_db": _finite_or_none(r["gain_margin_db"]),
+                         "phase_margin_deg": _finite_or_none(r["phase_margin_deg"]),
+                         "modulus_margin": _finite_or_none(r["modulus_margin"])}
+        _write_csv(os.path.join(out, f"fig18_{name}.csv"), r["certificate"].rows())
+    certs = {}
+    for name in ("mcm_interp", "mcm_ata", "mcm_ata_e2e"):
+        if certify_step_mm is None:
+            cert = ev[name]["certificate"]
+        else:
+            lo, hi = drive.travel_m
+            n = int(round((hi - lo) * 1e3 / certify_step_mm)) + 1
+            cert = fdjax.certify(controllers[name], drive, np.linspace(lo, hi, n))
+            _write_csv(os.path.join(out, f"certificate_{name}.csv"), cert.rows())
+        certs[name] = {"step_mm": certify_step_mm or 10.0, "certified": cert.ok,
+                       "message": cert.message}
+        print(f"  {name}: {cert.message}", flush=True)
+    control["certificates"] = certs
+    if synthesis is not None:
+        names = [f"{v * 1e3:.0f} mm" for v in synthesis.local.positions_m]
+        plots.plot_convergence({
+            "local designs": (synthesis.local.history, names),
+            "common gains": (synthesis.shared.history, names[1:]),
+            "robust PID (worst position)": (synthesis.pid_robust.worst, None),
+            "end to end (batch)": (synthesis.e2e.history, None),
+        }).savefig(os.path.join(out, "convergence.png"), dpi=90)
+        _write_csv(os.path.join(out, "local_designs.csv"), synthesis.local_table())
+        control["seconds"] = synthesis.seconds
+    with open(os.path.join(out, "control.json"), "w") as fh:
+        json.dump(control, fh, indent=1)
+    for name in control:
+        if isinstance(control[name], dict) and "rms_error_um" in control[name]:
+            r = control[name]
+            rms = [v for v in r["rms_error_um"] if v is not None]
+            worst = f"{max(rms):.1f}" if rms else "—"
+            n_bad = sum(not s for s in r["stable"])
+            print(f"  {r['label']:<30s} worst RMS {worst:>7s} µm, unstable at {n_bad} of "
+                  f"{len(r['stable'])} positions, least modulus margin "
+                  f"{min(v for v in r['modulus_margin'] if v is not None):.2f}", flush=True)
+    return control
+
+
+def tune(out: str, quick: bool = False) -> dict:
+    """``fdjax tune``: the local tunings, the baselines, the network by backpropagation and end
+    to end (:func:`fdjax.synthesise`), then Fig. 18, the certificates and the files of
+    :func:`control_report`.  ``quick``: a tenth of the steps, certification every 10 mm."""
+    import fdjax
+
+    start = time.perf_counter()
+    steps = dict(local_steps=30, shared_steps=20, pid_steps=30, network_steps=2000,
+                 e2e_steps=20) if quick else {}
+    syn = fdjax.synthesise(progress=True, **steps)
+    control = control_report(out, syn.controllers, synthesis=syn,
+                             certify_step_mm=None if quick else 1.0,
+                             metadata={"quick": quick})
+    control["seconds_total"] = time.perf_counter() - start
+    with open(os.path.join(out, "control.json"), "w") as fh:
+        json.dump(control, fh, indent=1)
+    print(f"schedule, designs, tables and figures written to {out}/ in "
+          f"{control['seconds_total']:.0f} s")
+    return control
 
 
 # The band `fdjax modes` identifies in, and reports the model's modes in.
@@ -422,7 +562,7 @@ def _count(what: str, minimum: int):
     return parse
 
 
-COMMANDS = ("reproduce", "demo", "figures", "modes")
+COMMANDS = ("reproduce", "demo", "figures", "modes", "tune")
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -452,6 +592,11 @@ def _parser() -> argparse.ArgumentParser:
                    "10-3000 Hz; the identification chooses its order itself)")
     p.add_argument("--source", choices=("fit", "model"), default="fit",
                    help="identify from the FRF (fit) or eigen-analysis of the twin (model)")
+    p = sub.add_parser("tune", help="gradient synthesis of the scheduled MCM (paper Fig. 18)",
+                       allow_abbrev=False)
+    p.add_argument("--out", default="build/tune", help="output folder (default build/tune)")
+    p.add_argument("--quick", action="store_true",
+                   help="a tenth of the optimiser steps, certification every 10 mm")
     return parser
 
 
@@ -481,6 +626,8 @@ def main(argv=None) -> int:
         print(f"figures written to {args.out}/")
     elif args.command == "modes":
         modes(args.out, args.positions, args.n_modes, args.source)
+    elif args.command == "tune":
+        tune(args.out, quick=args.quick)
     return 0
 
 

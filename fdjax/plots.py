@@ -27,6 +27,8 @@ __all__ = [
     "plot_peak_filter_effect",
     "plot_tracking",
     "stabilisation_diagram",
+    "plot_rms_over_travel",
+    "plot_convergence",
 ]
 
 _OUT_LABEL = {"theta1": r"$\theta_1$", "x2": r"$x_2$", "x3": r"$x_3$"}
@@ -405,5 +407,76 @@ def stabilisation_diagram(diagram, *, title="h21 = x2/T1"):
                  f"(dotted), selected order {orders[d.selected]}")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8, loc="upper left")
+    fig.tight_layout()
+    return fig
+
+
+def plot_rms_over_travel(positions_mm, results, *, labels=None, design_mm=(),
+                         modulus_margin=0.5, title="RMS tracking error over the travel"):
+    """Paper Fig. 18: RMS tracking error of each controller over the table position, and below
+    its modulus margin (the sampled loop's least over the break points) against the
+    requirement.  Unstable positions are marked × on the top edge of the RMS panel.
+
+    Args:
+        positions_mm: the positions (mm).
+        results: ``{name: {"rms_error_um": [...], "stable": [...], "modulus_margin": [...]}}``
+            (:func:`fdjax.evaluate`); RMS None where unstable.
+        labels: ``{name: legend label}``.
+        design_mm: the design positions of the local tunings (mm), drawn as dotted lines.
+        modulus_margin: the requirement line.
+    """
+    y = np.asarray(positions_mm, float)
+    fig, (ax, ax_m) = plt.subplots(2, 1, figsize=(10, 7.5), sharex=True,
+                                   gridspec_kw=dict(height_ratios=[2.0, 1.0]))
+    colors = plt.cm.tab10(np.arange(len(results)))
+    top = max(np.nanmax(np.asarray(r["rms_error_um"], float)) for r in results.values())
+    for (name, r), c in zip(results.items(), colors):
+        label = (labels or {}).get(name, name)
+        rms = np.asarray([np.nan if v is None else v for v in r["rms_error_um"]], float)
+        ax.plot(y, rms, color=c, lw=1.6, label=label)
+        bad = ~np.asarray(r["stable"], bool)
+        if np.any(bad):
+            ax.plot(y[bad], np.full(bad.sum(), 1.04 * top), "x", color=c, ms=6, clip_on=False)
+        ax_m.plot(y, np.asarray(r["modulus_margin"], float), color=c, lw=1.3)
+    for d in design_mm:
+        for a in (ax, ax_m):
+            a.axvline(d, color="k", lw=0.6, ls=":")
+    ax_m.axhline(modulus_margin, color="r", lw=1.0, ls="--",
+                 label=f"requirement {modulus_margin:g}")
+    ax.set_ylabel("RMS error at the scale (µm)")
+    ax.set_ylim(0, 1.08 * top)
+    ax.legend(fontsize=8, loc="upper left")
+    ax_m.set_ylabel("modulus margin")
+    ax_m.set_xlabel("table position (mm)")
+    ax_m.legend(fontsize=8, loc="lower left")
+    for a in (ax, ax_m):
+        a.grid(True, alpha=0.3)
+    ax.set_title(title + " (× unstable; dotted: design positions)", fontsize=10)
+    fig.tight_layout()
+    return fig
+
+
+def plot_convergence(curves, *, title="Convergence of the tunings"):
+    """The objective against the optimiser step, one panel per tuning, one line per position
+    (log scale).
+
+    Args:
+        curves: ``{label: (history, line labels or None)}``, history (steps,) or (steps, n).
+    """
+    n = len(curves)
+    fig, axes = plt.subplots(1, n, figsize=(4.2 * n, 3.8), squeeze=False)
+    for ax, (label, (h, names)) in zip(axes[0], curves.items()):
+        h = np.asarray(h, float)
+        h = h[:, None] if h.ndim == 1 else h
+        for k in range(h.shape[1]):
+            ax.semilogy(np.arange(1, h.shape[0] + 1), h[:, k], lw=1.0,
+                        label=None if names is None else names[k])
+        ax.set_title(label, fontsize=10)
+        ax.set_xlabel("step")
+        ax.grid(True, which="both", alpha=0.3)
+        if names is not None:
+            ax.legend(fontsize=7)
+    axes[0][0].set_ylabel("objective J")
+    fig.suptitle(title)
     fig.tight_layout()
     return fig

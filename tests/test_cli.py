@@ -86,6 +86,18 @@ def test_demo_writes_figures(tmp_path):
     err = s["mcm_discretisation"]["max_relative_error"]
     assert err["fitted"] < 0.01 < 0.05 < err["tustin"]
     assert sorted(s["figures"]) == sorted(p.name for p in out.glob("*.png"))
+    # Fig. 18 of the shipped designs: every controller at every 10 mm, and the schedule files
+    c = s["control"]
+    np.testing.assert_allclose(c["positions_mm"], np.arange(100.0, 701.0, 10.0))
+    for name in fdjax.CONTROLLERS:
+        for key in ("rms_error_um", "stable", "gain_margin_db", "phase_margin_deg",
+                    "modulus_margin"):
+            assert len(c[name][key]) == 61, (name, key)
+    assert "fig18_rms_over_travel.png" in s["figures"]
+    sched = fdjax.load_schedule(out / "schedule.eqx")
+    shipped, _ = fdjax.load_designs(cli.SHIPPED_DESIGNS)
+    np.testing.assert_array_equal(sched.network(0.37), shipped["mcm_ata_e2e"].network(0.37))
+    assert (out / "filters.csv").exists() and (out / "filters.json").exists()
 
 
 def test_modes_writes_table(tmp_path, capsys):
@@ -105,7 +117,7 @@ def test_modes_writes_table(tmp_path, capsys):
     [
         (["reprodce"], "unknown command 'reprodce'; did you mean 'reproduce'?"),
         (["figure", "--out", "x"], "unknown command 'figure'; did you mean 'figures'?"),
-        (["plot"], "unknown command 'plot' (commands: reproduce, demo, figures, modes)"),
+        (["plot"], "unknown command 'plot' (commands: reproduce, demo, figures, modes, tune)"),
         (["reproduce", "--quik"], "unrecognized arguments: --quik"),
         (["reproduce", "--qui"], "unrecognized arguments: --qui"),  # no silent abbreviations
         (["modes", "--source", "data"], "argument --source: invalid choice: 'data'"),
@@ -117,10 +129,13 @@ def test_modes_writes_table(tmp_path, capsys):
         (["modes", "--positions", "1"], "an integer ≥ 2; got '1'"),
         (["modes", "--n-modes", "0"],
          "argument --n-modes: expected the number of modes, an integer ≥ 1; got '0'"),
-        ([], "the following arguments are required: {reproduce,demo,figures,modes}"),
+        ([], "the following arguments are required: {reproduce,demo,figures,modes,tune}"),
+        (["tnue"], "unknown command 'tnue'; did you mean 'tune'?"),
+        (["tune", "--steps", "10"], "unrecognized arguments: --steps 10"),
     ],
     ids=["typo", "typo-figures", "unknown-command", "bad-option", "abbreviation", "bad-choice",
-         "positions-in-mm", "positions-in-m", "positions-too-few", "n-modes-zero", "no-command"],
+         "positions-in-mm", "positions-in-m", "positions-too-few", "n-modes-zero", "no-command",
+         "typo-tune", "tune-bad-option"],
 )
 def test_argument_errors(argv, message, capsys):
     with pytest.raises(SystemExit) as exc:

@@ -11,6 +11,8 @@ steps cannot break.
   :func:`tune_robust` (one design for all positions), :func:`tune_shared_gains` (one gain set,
   one MCM per position); :func:`descend`, the optax loop they share.
 * ``_end_to_end``: :func:`train_schedule`, the network trained against the objective itself.
+* ``_designs``: :func:`save_designs` / :func:`load_designs`, named controllers bit for bit.
+* ``_synthesis``: :func:`synthesise`, the whole chain of Fig. 18, and :func:`evaluate`.
 * ``_certify``: :func:`certify`, stability and exact sampled margins every 1 mm.
 * ``_parameterisation``: :class:`MCMBounds` (the seven normalised MCM parameters the scheduling
   network outputs) and :class:`DoubleLoopParameterisation` (gains and filters of a
@@ -21,6 +23,7 @@ from ._certify import (
     Certificate as Certificate,
     certify as certify,
 )
+from ._designs import load_designs as load_designs, save_designs as save_designs
 from ._end_to_end import train_schedule as train_schedule
 from ._local import (
     Descent as Descent,
@@ -59,4 +62,10 @@ from ._schedule import (
     fit_network as fit_network,
     load_schedule as load_schedule,
     save_schedule as save_schedule,
+)
+from ._synthesis import (
+    CONTROLLERS as CONTROLLERS,
+    Synthesis as Synthesis,
+    evaluate as evaluate,
+    synthesise as synthesise,
 )

@@ -251,6 +251,23 @@ def _fit(network, y, t, steps, opt):
     return eqx.combine(params, static), history
 
 
+def bounds_json(b: MCMBounds) -> dict:
+    """The bounds as a JSON object (:func:`bounds_from_json` reads it back)."""
+    return {"period_s": b.period, "freq_hz": list(b.freq_hz),
+            "peak_gain": list(b.peak_gain), "peak_damping": list(b.peak_damping),
+            "peak_phase_max_rad": b.peak_phase_max,
+            "notch_damping": list(b.notch_damping), "notch_depth_min": b.notch_depth_min}
+
+
+def bounds_from_json(b: dict) -> MCMBounds:
+    """The :class:`MCMBounds` of :func:`bounds_json`."""
+    return MCMBounds(period=b["period_s"], freq_hz=tuple(b["freq_hz"]),
+                     peak_gain=tuple(b["peak_gain"]), peak_damping=tuple(b["peak_damping"]),
+                     peak_phase_max=b["peak_phase_max_rad"],
+                     notch_damping=tuple(b["notch_damping"]),
+                     notch_depth_min=b["notch_depth_min"])
+
+
 def _hyperparameters(schedule: ScheduledLoop, extra: dict | None) -> dict:
     b = schedule.bounds
     return {
@@ -258,10 +275,7 @@ def _hyperparameters(schedule: ScheduledLoop, extra: dict | None) -> dict:
         "network": {"width": schedule.network.width, "depth": 2, "activation": "sigmoid",
                     "inputs": ["position (normalised over travel_m)"],
                     "outputs": list(MCM_PARAMETERS), "travel_m": list(schedule.network.travel_m)},
-        "bounds": {"period_s": b.period, "freq_hz": list(b.freq_hz),
-                   "peak_gain": list(b.peak_gain), "peak_damping": list(b.peak_damping),
-                   "peak_phase_max_rad": b.peak_phase_max,
-                   "notch_damping": list(b.notch_damping), "notch_depth_min": b.notch_depth_min},
+        "bounds": bounds_json(b),
         "units": {"kp": "1/s", "kv": "A·s/m", "ki": "rad/s", "k_ffv": "-", "k_ffa": "A·s²/m",
                   "position": "m", "omega": "rad/s"},
         "gains": {k: float(getattr(schedule.loop, k))
@@ -299,12 +313,7 @@ def load_schedule(path: str | os.PathLike) -> ScheduledLoop:
     if meta.get("format") != _FORMAT:
         raise ValueError(f"`load_schedule(path=...)`: {meta_path!r} is not an fdjax schedule "
                          f"(format {meta.get('format')!r}, expected {_FORMAT!r})")
-    b = meta["bounds"]
-    bounds = MCMBounds(period=b["period_s"], freq_hz=tuple(b["freq_hz"]),
-                       peak_gain=tuple(b["peak_gain"]), peak_damping=tuple(b["peak_damping"]),
-                       peak_phase_max=b["peak_phase_max_rad"],
-                       notch_damping=tuple(b["notch_damping"]),
-                       notch_depth_min=b["notch_depth_min"])
+    bounds = bounds_from_json(meta["bounds"])
     net = ATANetwork(tuple(meta["network"]["travel_m"]), width=meta["network"]["width"])
     like = ScheduledLoop(DoubleLoop(**meta["gains"]), net, bounds)
     return eqx.tree_deserialise_leaves(path, like)

@@ -1,0 +1,96 @@
+r"""Saving and loading a set of named controllers (the designs of a synthesis), bit for bit.
+
+``DIR/controllers.eqx`` holds the leaves of every controller (``eqx.tree_serialise_leaves``),
+``DIR/controllers.json`` what is needed to rebuild their structure (kind, the network's width,
+the number of interpolation points, the filter bounds) and the user's metadata (the drive they
+were tuned for, the objective, the units).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+
+import equinox as eqx
+import jax.numpy as jnp
+
+from .._control._controllers import AbstractController, DoubleLoop, PIDLoop
+from .._filters import MCM, NotchFilter, PeakFilter
+from ._parameterisation import MCM_PARAMETERS
+from ._schedule import ATANetwork, InterpolatedLoop, ScheduledLoop, bounds_from_json, bounds_json
+
+__all__ = ["save_designs", "load_designs"]
+
+_FORMAT = "fdjax-designs/1"
+
+
+def _describe(name: str, c: AbstractController) -> dict:
+    if isinstance(c, ScheduledLoop):
+        return {"kind": "ScheduledLoop", "width": c.network.width,
+                "travel_m": list(c.network.travel_m), "bounds": bounds_json(c.bounds)}
+    if isinstance(c, InterpolatedLoop):
+        return {"kind": "InterpolatedLoop", "n_points": int(c.positions_m.shape[0]),
+                "bounds": bounds_json(c.bounds)}
+    if isinstance(c, DoubleLoop):
+        if c.mcm.peak is None or c.mcm.notch is None or c.mcm.peak.K.shape != (1,) or \
+                c.mcm.notch.omega.shape != (1,):
+            raise ValueError(f"`save_designs(controllers=...)`: {name!r} must have an MCM of one "
+                             "peak and one notch filter")
+        return {"kind": "DoubleLoop"}
+    if isinstance(c, PIDLoop):
+        return {"kind": "PIDLoop"}
+    raise TypeError(f"`save_designs(controllers=...)`: {name!r} is a {type(c).__name__}; "
+                    "DoubleLoop, PIDLoop, InterpolatedLoop and ScheduledLoop can be saved")
+
+
+def _skeleton(d: dict) -> AbstractController:
+    mcm = MCM(PeakFilter(0.1, 1000.0, 0.1, 0.0), NotchFilter(5000.0, 0.01, 0.1))
+    kind = d["kind"]
+    if kind == "PIDLoop":
+        return PIDLoop()
+    if kind == "DoubleLoop":
+        return DoubleLoop(mcm=mcm)
+    if kind == "InterpolatedLoop":
+        n = d["n_points"]
+        return InterpolatedLoop(DoubleLoop(), jnp.arange(1.0, n + 1.0),
+                                jnp.zeros((n, len(MCM_PARAMETERS))), bounds_from_json(d["bounds"]))
+    if kind == "ScheduledLoop":
+        net = ATANetwork(tuple(d["travel_m"]), width=d["width"])
+        return ScheduledLoop(DoubleLoop(), net, bounds_from_json(d["bounds"]))
+    raise ValueError(f"`load_designs(folder=...)`: unknown controller kind {kind!r}")
+
+
+def save_designs(folder: str | os.PathLike, controllers: dict[str, AbstractController], *,
+                 metadata: dict | None = None) -> None:
+    """Write ``controllers`` (a dict name → controller) to ``folder``/controllers.eqx and
+    ``folder``/controllers.json (module docstring); :func:`load_designs` reads them back bit
+    for bit."""
+    if not isinstance(controllers, dict) or not controllers:
+        raise TypeError("`save_designs(controllers=...)` must be a non-empty dict of name → "
+                        "controller")
+    folder = os.fspath(folder)
+    os.makedirs(folder, exist_ok=True)
+    meta = {"format": _FORMAT, "names": list(controllers),
+            "controllers": {k: _describe(k, c) for k, c in controllers.items()},
+            "metadata": dict(metadata or {})}
+    eqx.tree_serialise_leaves(os.path.join(folder, "controllers.eqx"), controllers)
+    with open(os.path.join(folder, "controllers.json"), "w") as f:
+        json.dump(meta, f, indent=2, ensure_ascii=False)
+
+
+def load_designs(folder: str | os.PathLike) -> tuple[dict[str, AbstractController], dict]:
+    """Read the controllers written by :func:`save_designs`: (dict name → controller, the
+    metadata)."""
+    folder = os.fspath(folder)
+    leaves, meta_path = (os.path.join(folder, n) for n in ("controllers.eqx", "controllers.json"))
+    for p in (leaves, meta_path):
+        if not os.path.exists(p):
+            raise FileNotFoundError(f"`load_designs(folder=...)`: no file {p!r}")
+    with open(meta_path) as f:
+        meta = json.load(f)
+    if meta.get("format") != _FORMAT:
+        raise ValueError(f"`load_designs(folder=...)`: {meta_path!r} is not a set of fdjax "
+                         f"designs (format {meta.get('format')!r}, expected {_FORMAT!r})")
+    like = {k: _skeleton(meta["controllers"][k]) for k in meta["names"]}
+    got = eqx.tree_deserialise_leaves(leaves, like)
+    return {k: got[k] for k in meta["names"]}, meta["metadata"]

@@ -1,0 +1,159 @@
+"""Gradient synthesis: the growth-rate barrier's gradient, the PID parameterisation, the
+interpolated and scheduled loops, the certification, and saving and loading the designs."""
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import fdjax
+from fdjax._simulation._lifted import growth_rate
+
+BOUNDS = fdjax.MCMBounds.for_servo(fdjax.Servo())
+POSITIONS = np.linspace(0.1, 0.7, 6)
+
+
+# ------------------------------------------------------------------ the growth-rate barrier
+@pytest.mark.parametrize("pair", [False, True], ids=["real", "complex-pair"])
+def test_growth_rate_value_and_gradient_against_eig(pair):
+    """ln ρ(Φ)/h and its gradient against numpy's eigenvalues and central differences of
+    them; dominant eigenvalue real or a complex pair (measured: value 5e-12, gradient 6e-9
+    relative, the differences' own error)."""
+    rng = np.random.default_rng(3 if pair else 4)
+    A = rng.normal(size=(8, 8)) / np.sqrt(8)
+    if pair:
+        A[:2, :2] = 1.3 * np.array([[np.cos(0.3), -np.sin(0.3)], [np.sin(0.3), np.cos(0.3)]])
+    h = 1e-3
+    lam = np.linalg.eigvals(A)
+    assert (abs(lam[np.argmax(np.abs(lam))].imag) > 0.1) == pair
+
+    def oracle(M):
+        return np.log(np.max(np.abs(np.linalg.eigvals(M)))) / h
+
+    P = jnp.asarray(A)
+    np.testing.assert_allclose(float(growth_rate(P, h)), oracle(A), rtol=0, atol=1e-9)
+    g = np.asarray(jax.grad(lambda p: growth_rate(p, h))(P))
+    eps = 1e-6
+    fd = np.array([[(oracle(A + eps * E) - oracle(A - eps * E)) / (2 * eps)
+                    for E in np.eye(64)[8 * i:8 * i + 8].reshape(8, 8, 8)] for i in range(8)])
+    np.testing.assert_allclose(g, fd, rtol=0, atol=1e-7 * np.max(np.abs(fd)))
+
+
+# ------------------------------------------------------------------ PID parameterisation
+def test_pid_parameterisation_round_trip_and_feedback_only():
+    pid = fdjax.reference_pid(k_ffv=3.0, k_ffa=8.0)
+    par = fdjax.PIDParameterisation(pid)
+    theta = par.from_controller(pid)
+    np.testing.assert_allclose(np.asarray(theta)[[0, 1, 2, 4, 5]], [0, 0, 0, 1, 1], atol=1e-14)
+    back = par.to_controller(theta)
+    for k in ("kp", "ki", "kd", "wd", "k_ffv", "k_ffa"):
+        np.testing.assert_allclose(getattr(back, k), getattr(pid, k), rtol=1e-13)
+    assert par.names == fdjax.PID_PARAMETERS
+    # any θ: ω_d below Nyquist
+    for th in 50 * np.random.default_rng(0).normal(size=(20, 6)):
+        wd = float(par.to_controller(jnp.asarray(th)).wd)
+        assert 2 * math.pi * 10.0 * (1 - 1e-12) <= wd < math.pi / fdjax.Servo().period
+    fb = fdjax.PIDParameterisation(fdjax.reference_pid(), feedforward=False)
+    c = fb.to_controller(jnp.asarray([0.1, 0.2, 0.3, 0.0, 5.0, -7.0]))
+    assert float(c.k_ffv) == 0.0 and float(c.k_ffa) == 0.0
+    dl = fdjax.DoubleLoopParameterisation(BOUNDS, fdjax.reference_controller(),
+                                          feedforward=False)
+    c = dl.to_controller(jnp.concatenate([jnp.zeros(3), jnp.array([4.0, 4.0]), jnp.zeros(7)]))
+    assert float(c.k_ffv) == 0.0 and float(c.k_ffa) == 0.0
+    with pytest.raises(TypeError, match=r"`PIDParameterisation\(reference=\.\.\.\)` must be an "
+                                        r"fdjax.PIDLoop"):
+        fdjax.PIDParameterisation(fdjax.DoubleLoop())
+    with pytest.raises(ValueError, match=r"k_ffv sets the scale of its parameter"):
+        fdjax.PIDParameterisation(fdjax.reference_pid())  # zero feed-forward as the scale
+
+
+def test_smooth_max_lies_between_mean_and_max():
+    v = jnp.array([1.0, 3.0, 2.0, 2.5])
+    for beta in (0.1, 1.0, 10.0, 100.0):
+        s = float(fdjax.smooth_max(v, beta))
+        assert float(jnp.mean(v)) <= s <= 3.0 + 1e-12
+        assert s >= 3.0 - math.log(4) / beta
+    assert abs(float(fdjax.smooth_max(v, 1e-6)) - 2.125) < 1e-5
+
+
+# ------------------------------------------------------------------ interpolation, schedule
+def _designs():
+    y = (POSITIONS - 0.4) / 0.3
+    return np.stack([0.5 + 0.3 * y, -0.2 + 0.4 * y ** 2, 0.8 - 0.1 * y, -0.3 * y,
+                     1.7 - 0.5 * y, 1.0 + 0.2 * y, -0.7 + 0.1 * y ** 3], axis=1)
+
+
+def test_interpolated_loop_is_linear_in_the_normalised_parameters():
+    loop = fdjax.InterpolatedLoop(fdjax.DoubleLoop(), POSITIONS, _designs(), BOUNDS)
+    t = _designs()
+    for i, y in enumerate(POSITIONS):
+        np.testing.assert_allclose(loop.normalised(y), t[i], rtol=0, atol=1e-15)
+        np.testing.assert_allclose(BOUNDS.from_mcm(loop.controller(y).mcm), t[i], atol=1e-11)
+    mid = 0.5 * (POSITIONS[2] + POSITIONS[3])
+    np.testing.assert_allclose(loop.normalised(mid), 0.5 * (t[2] + t[3]), atol=1e-15)
+    np.testing.assert_allclose(loop.normalised(0.05), t[0], atol=1e-15)  # held outside
+    with pytest.raises(ValueError, match=r"must be increasing"):
+        fdjax.InterpolatedLoop(fdjax.DoubleLoop(), POSITIONS[::-1], _designs(), BOUNDS)
+
+
+def test_designs_round_trip_bit_for_bit(tmp_path):
+    net = fdjax.ATANetwork((0.1, 0.7), width=5, key=jax.random.PRNGKey(2))
+    mcm = fdjax.reference_mcm()
+    controllers = {
+        "pid": fdjax.reference_pid(k_ffv=1.5, k_ffa=2.5),
+        "fixed": fdjax.DoubleLoop(123.0, 4567.0, 89.0, k_ffv=0.9, k_ffa=7.7, mcm=mcm),
+        "interp": fdjax.InterpolatedLoop(fdjax.DoubleLoop(150.0, 3000.0, 40.0), POSITIONS,
+                                         _designs(), BOUNDS),
+        "ata": fdjax.ScheduledLoop(fdjax.DoubleLoop(111.0, 2222.0, 33.0), net, BOUNDS),
+    }
+    fdjax.save_designs(tmp_path, controllers, metadata={"drive": "test"})
+    back, meta = fdjax.load_designs(tmp_path)
+    assert meta == {"drive": "test"} and list(back) == list(controllers)
+    for name, c in controllers.items():
+        a, b = jax.tree_util.tree_leaves(c), jax.tree_util.tree_leaves(back[name])
+        assert len(a) == len(b) and type(back[name]) is type(c)
+        for x, y in zip(a, b):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    with pytest.raises(FileNotFoundError, match=r"`load_designs\(folder=\.\.\.\)`: no file"):
+        fdjax.load_designs(tmp_path / "nothing")
+
+
+# ------------------------------------------------------------------ certification
+def test_certify_is_loop_margins_and_stability_at_each_position():
+    """The certificate of a scheduled loop at each position equals the margins and the
+    eigenvalues of the fixed loop it runs there (computed by the public functions)."""
+    drive = fdjax.reference_drive()
+    ref = fdjax.reference_controller(drive)
+    theta = np.tile(np.asarray(BOUNDS.from_mcm(ref.mcm)), (6, 1))
+    theta[:, 1] += np.linspace(0.0, -0.6, 6)  # the peak filter's frequency falls along the travel
+    soft = eqx.tree_at(lambda c: c.log_kv, ref, ref.log_kv + math.log(0.5))
+    sched = fdjax.InterpolatedLoop(soft, POSITIONS, theta, BOUNDS)
+    y = np.array([0.1, 0.43, 0.7])
+    f = np.geomspace(5.0, 3990.0, 1500)
+    cert = fdjax.certify(sched, drive, y, freq_hz=f)
+    assert cert.positions_m.shape == (3,) and cert.requirements == (6.0, 30.0, 0.5)
+    for k, p in enumerate(y):
+        c = sched.controller(p)
+        st = fdjax.check_stability(c, drive, position_m=p)
+        m = fdjax.loop_margins(c, drive, f, position_m=p)
+        loops = [m.plant_input, m.speed, m.position]
+        assert bool(cert.stable[k]) == bool(st.stable)
+        np.testing.assert_allclose(cert.growth_rate[k], st.growth_rate, rtol=1e-9)
+        # the same arithmetic in another compiled program: round-off
+        np.testing.assert_allclose(
+            cert.modulus_margin[k], min(float(L.modulus_margin) for L in loops), rtol=1e-9)
+        np.testing.assert_allclose(
+            cert.gain_margin_db[k], min(abs(float(L.gain_margin_db)) for L in loops), rtol=1e-9)
+    assert cert.ok == bool(np.all(cert.passed))
+    assert ("certified at 3 positions" in cert.message) == cert.ok
+    # the reference controller held fixed fails toward the screw end (unstable from 0.5 m)
+    bad = fdjax.certify(ref, drive, y, freq_hz=f)
+    assert not bad.ok and not bool(bad.stable[-1])
+    assert "NOT certified" in bad.message and "unstable at" in bad.message
+    assert bad.worst("modulus_margin")[0] == 0.7
+    with pytest.raises(ValueError, match=r"`certify\(position_m=\.\.\.\)` must be inside the "
+                                         r"travel"):
+        fdjax.certify(ref, drive, [115.0])
