@@ -58,6 +58,7 @@ _EXPORTS = {
         "Path",
         "PIDLoop",
         "Servo",
+        "to_python_control",
     ),
     "._control._reference": (
         "reference_controller",
@@ -235,6 +236,7 @@ if TYPE_CHECKING:
         PIDLoop as PIDLoop,
         Servo as Servo,
         pade as pade,
+        to_python_control as to_python_control,
     )
     from ._control._reference import (
         reference_controller as reference_controller,

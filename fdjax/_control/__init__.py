@@ -17,6 +17,7 @@ from ._controllers import (
     Path as Path,
     PIDLoop as PIDLoop,
 )
+from ._export import to_python_control as to_python_control
 from ._interconnect import (
     CLOSED_LOOP_INPUTS as CLOSED_LOOP_INPUTS,
     CLOSED_LOOP_OUTPUTS as CLOSED_LOOP_OUTPUTS,

@@ -1,0 +1,44 @@
+r"""A controller at a table position as the python-control object a control engineer checks it
+with: the law from w = (r, ṙ, r̈, x2, v_m) (:data:`fdjax.LAW_SIGNALS`) to the current command u,
+
+    u_k = C x_k + D w_k,   x_{k+1} = A x_k + B w_k   (sampled, dt = T: what the servo runs),
+    u = (C (sI − A)⁻¹ B + D) w                      (continuous, ``discrete=False``),
+
+the same realisation the closed loops, margins and simulations of fdjax use.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ._controllers import LAW_SIGNALS, AbstractController
+from ._interconnect import realise_law
+from ._servo import Servo
+
+__all__ = ["to_python_control"]
+
+
+def to_python_control(controller: AbstractController, position_m=None, *,
+                      servo: Servo = Servo(), discrete: bool = True,
+                      filter_method: str = "fitted", form: str = "ss"):
+    """The law of ``controller`` at ``position_m`` (m; needed by a scheduled controller) as a
+    python-control ``StateSpace`` (``form="ss"``) or ``TransferFunction`` (``form="tf"``),
+    sampled at the servo period (module docstring) or continuous.  Inputs named after
+    :data:`fdjax.LAW_SIGNALS`, output ``u`` (A).  Needs the ``control`` package."""
+    fn = "to_python_control"
+    if not isinstance(controller, AbstractController):
+        raise TypeError(f"`{fn}(controller=...)` must be an fdjax controller, got "
+                        f"{type(controller).__name__}")
+    if form not in ("ss", "tf"):
+        raise ValueError(f"`{fn}(form=...)` must be 'ss' or 'tf', got {form!r}")
+    try:
+        import control
+    except ImportError as exc:  # pragma: no cover - depends on the environment
+        raise ImportError(f"`{fn}` needs python-control: pip install control") from exc
+    law = controller.law(None if position_m is None else float(position_m))
+    period = float(servo.period) if discrete else None
+    lti = realise_law(law, period=period, filter_method=filter_method)
+    A, B, C, D = (np.array(x, np.float64) for x in (lti.A, lti.B, lti.C, lti.D))
+    sys = control.ss(A, B, C, D, period if discrete else 0, inputs=list(LAW_SIGNALS),
+                     outputs=["u"])
+    return control.ss2tf(sys) if form == "tf" else sys
