@@ -174,6 +174,9 @@ _EXPORTS = {
         "synthesise",
         "Synthesis",
         "evaluate",
+        "CONTROLLERS",
+        "tuning_motion",
+        "tuning_objective",
     ),
     "._trajectory": (
         "concatenate",

@@ -68,4 +68,6 @@ from ._synthesis import (
     Synthesis as Synthesis,
     evaluate as evaluate,
     synthesise as synthesise,
+    tuning_motion as tuning_motion,
+    tuning_objective as tuning_objective,
 )

@@ -9,7 +9,8 @@ r"""The whole gradient synthesis of paper Sec. 4.2 and Fig. 18 on one drive, as 
    (:func:`tune_robust` over 13 positions), the MCM tuned at 115 mm held fixed, the six MCMs
    interpolated linearly in their normalised parameters (:class:`InterpolatedLoop`).
 4. **The ATA network** fitted to the six MCMs by backpropagation (:func:`fit_network`), then
-   **trained end to end** against the objective over the travel (:func:`train_schedule`).
+   **trained end to end** against the objective over the travel, with the loop's common gains
+   (:func:`train_schedule`).
 5. **Evaluation**: RMS error, stability and the exact sampled margins of every controller on a
    grid of positions (:func:`evaluate`, :func:`certify`).
 """
@@ -101,6 +102,8 @@ class Synthesis:
         pid_115, pid_robust: the PID tunings.
         network_loss: the backpropagation loss per step.
         e2e: the end-to-end training record.
+        bounds, design_positions_m: the filter bounds and the six design positions (m).
+        parameterisation: θ ↔ double loop of the local designs.
         seconds: wall time of each stage (s), compilation included.
     """
 
@@ -115,11 +118,12 @@ class Synthesis:
     e2e: Descent
     bounds: MCMBounds
     design_positions_m: np.ndarray
+    parameterisation: DoubleLoopParameterisation
     seconds: dict[str, float] = field(default_factory=dict)
 
     def local_table(self) -> dict[str, list]:
         """The local designs (common gains) per design position, physical units."""
-        par = DoubleLoopParameterisation(self.bounds, self.controllers["mcm_fixed"])
+        par = self.parameterisation
         rows = {k: [] for k in ("position_mm", "kp", "kv", "ki", "k_ffv", "k_ffa", "peak_K",
                                 "peak_freq_hz", "peak_xi", "peak_phi_deg", "notch_freq_hz",
                                 "notch_zeta_n", "notch_zeta_d", "objective")}
@@ -150,7 +154,7 @@ def synthesise(
     network_steps: int = 4000,
     e2e_steps: int = 200,
     e2e_batch: int = 8,
-    train_gains: bool = False,
+    train_gains: bool = True,
     feedforward: bool = False,
     progress: bool = True,
 ) -> Synthesis:
@@ -226,7 +230,7 @@ def synthesise(
         "mcm_ata_e2e": schedule_e2e,
     }
     return Synthesis(controllers, schedule_bp, schedule_e2e, local, shared, pid_115,
-                     pid_robust, np.asarray(loss), e2e, bounds, design, seconds)
+                     pid_robust, np.asarray(loss), e2e, bounds, design, par, seconds)
 
 
 def evaluate(
