@@ -157,6 +157,7 @@ def derivative_free(par, obj, drive, positions, start, maxfev):
             "evals": int(tr.size), "evals_to_best": k_best + 1, "seconds": total_s,
             "seconds_to_best": float(stamps[k_best] - t0), "non_finite_evals": bad,
             "message": str(res.message), "trace": tr,
+            "trace_seconds": np.asarray(stamps) - t0,
         })
     return {"compile_s": compile_s, "seconds_per_eval_median": t_eval,
             "simplex_step": SIMPLEX_STEP, "maxfev": int(maxfev), "positions": out}
@@ -215,6 +216,32 @@ def compare(grad, nm, positions):
             gradient_seconds_to_reach_all=k_max * grad["seconds_per_step"],
             simulations_ratio=totals["nm_evals_to_best"] / sims,
             wall_time_ratio=totals["nm_seconds_to_best"] / (k_max * grad["seconds_per_step"]))
+    return rows, totals
+
+
+def compare_common(grad, nm, positions):
+    """Per position: the cost of each tuner to reach the same value, the worse of the two
+    bests (a value both reach): gradient steps (× 2 simulations) and Nelder-Mead evaluations
+    until their running minimum is at or below it."""
+    h = grad["history"]
+    run_min = np.minimum.accumulate(h, axis=0)
+    rows = []
+    for i, (p, d) in enumerate(zip(positions, nm["positions"])):
+        target = max(float(run_min[-1, i]), d["j_best"])
+        k = int(np.nonzero(run_min[:, i] <= target)[0][0]) + 1
+        nm_min = np.minimum.accumulate(np.asarray(d["trace"]))
+        e = int(np.nonzero(nm_min <= target)[0][0]) + 1
+        rows.append({"position_m": float(p), "target_j": target, "gradient_steps": k,
+                     "gradient_sims": SIMS_PER_GRADIENT_STEP * k, "nm_evals": e,
+                     "nm_seconds": float(np.asarray(d["trace_seconds"])[e - 1]),
+                     "simulations_ratio": e / (SIMS_PER_GRADIENT_STEP * k)})
+    k_max = max(r["gradient_steps"] for r in rows)
+    totals = {"gradient_sims": sum(r["gradient_sims"] for r in rows),
+              "nm_evals": sum(r["nm_evals"] for r in rows),
+              "gradient_seconds_all": k_max * grad["seconds_per_step"],
+              "nm_seconds": sum(r["nm_seconds"] for r in rows)}
+    totals["simulations_ratio"] = totals["nm_evals"] / totals["gradient_sims"]
+    totals["wall_time_ratio"] = totals["nm_seconds"] / totals["gradient_seconds_all"]
     return rows, totals
 
 
@@ -284,6 +311,21 @@ def markdown(result):
                   f"simulation equivalents, {t['gradient_steps_to_reach_all']} steps = "
                   f"{t['gradient_seconds_to_reach_all']:.1f} s until every position has "
                   "reached NM's best."]
+    c_rows, c_tot = result["common_value"], result["common_value_totals"]
+    lines += ["", "To the same objective value (the worse of the two tuners' bests at each "
+              "position, a value both reach): simulations and wall time of each until its "
+              "running minimum is there.", "",
+              "| position | J target | grad steps | grad sims | NM evals | NM s | sims ratio |",
+              "|---|---|---|---|---|---|---|"]
+    for r in c_rows:
+        lines.append(f"| {r['position_m']:.2f} m | {r['target_j']:.4g} | "
+                     f"{r['gradient_steps']} | {r['gradient_sims']} | {r['nm_evals']} | "
+                     f"{r['nm_seconds']:.1f} | {r['simulations_ratio']:.1f}× |")
+    lines += ["", f"All positions: gradient {c_tot['gradient_sims']} simulation equivalents "
+              f"and {c_tot['gradient_seconds_all']:.1f} s (six positions together); "
+              f"Nelder-Mead {c_tot['nm_evals']} evaluations and {c_tot['nm_seconds']:.1f} s: "
+              f"**{c_tot['simulations_ratio']:.1f}× fewer simulations, "
+              f"{c_tot['wall_time_ratio']:.1f}× less wall time**."]
     lines += ["", "Final gradient designs (best θ), eigenvalues on the default twin:", "",
               "| position | stable | growth rate (1/s) | gain headroom |", "|---|---|---|---|"]
     for v in result["verification"]["gradient"]:
@@ -327,6 +369,7 @@ def main():
     print("nelder-mead", [(d["position_m"], d["j_best"], d["evals"], d["seconds"])
                           for d in nm["positions"]], flush=True)
     rows, totals = compare(grad, nm, positions)
+    common, common_totals = compare_common(grad, nm, positions)
     verification = {"gradient": verify(par, drive, positions, grad["best_theta"])}
     nm_thetas = [d["theta_best"] for d in nm["positions"]]
     if all(th is not None for th in nm_thetas):
@@ -358,6 +401,7 @@ def main():
             "six_tunings_s": {"value": grad["steps_s"], "target": TARGETS["six_tunings_s"]},
         },
         "gradient": grad, "derivative_free": nm, "per_position": rows, "totals": totals,
+        "common_value": common, "common_value_totals": common_totals,
         "verification": verification,
     }
     for k, v in result["targets"].items():

@@ -76,7 +76,7 @@ def tune_local(
         objective: J(controller, Y).
         drive: the drive.
         positions_m: design positions (m), 1-D, inside the travel.
-        start: the starting controller, or starting parameters (n, p).
+        start: the starting controller, or starting parameters, (p,) for every position or (n, p).
         steps: optimiser steps (≥ 1).
         optimiser: an optax transformation (default ``optax.adam(0.02)``).
         chunk: steps per compiled call (the progress line is printed between calls).
@@ -166,9 +166,11 @@ def _start(fn, parameterisation, start, n):
     if isinstance(start, AbstractController):
         start = jnp.broadcast_to(parameterisation.from_controller(start), (n, n_par))
     theta = jnp.asarray(start, jnp.float64)
+    if theta.shape == (n_par,):  # one θ for every position
+        theta = jnp.broadcast_to(theta, (n, n_par))
     if theta.shape != (n, n_par):
         raise ValueError(f"`{fn}(start=...)` must be a controller of the parameterisation or "
-                         f"have shape ({n}, {n_par}), got {theta.shape}")
+                         f"have shape ({n_par},) or ({n}, {n_par}), got {theta.shape}")
     return theta
 
 

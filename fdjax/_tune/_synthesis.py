@@ -1,10 +1,10 @@
 r"""The whole gradient synthesis of paper Sec. 4.2 and Fig. 18 on one drive, as one function.
 
-1. **Local designs**: the full double loop (gains and MCM) tuned by :func:`tune_local` at six
-   positions over the travel and at 115 mm (the fixed MCM of Fig. 18), from the reference
-   controller with k_v halved (stable at every position).
+1. **Local designs**: the full double loop (gains and MCM) tuned by :func:`tune_local` at
+   115 mm (the fixed MCM of Fig. 18), from the reference controller with k_v halved (stable at
+   every position), then at six positions over the travel from the design at 115 mm.
 2. **Common gains**: one gain set and one MCM per design position (:func:`tune_shared_gains`),
-   what a schedule of the filters needs.
+   what a schedule of the filters needs, from the design at 115 mm at every position.
 3. **Baselines**: a PID tuned at 115 mm (:func:`tune_local`), the robust PID
    (:func:`tune_robust` over 13 positions), the MCM tuned at 115 mm held fixed, the six MCMs
    interpolated linearly in their normalised parameters (:class:`InterpolatedLoop`).
@@ -139,6 +139,15 @@ class Synthesis:
         return rows
 
 
+def _join(a: LocalTuning, b: LocalTuning) -> LocalTuning:
+    """Two local tunings of the same parameterisation and steps as one, a's positions first."""
+    cat = lambda x, y: jnp.concatenate([x, y])  # noqa: E731
+    return LocalTuning(cat(a.positions_m, b.positions_m), cat(a.theta, b.theta),
+                       cat(a.best_theta, b.best_theta),
+                       jnp.concatenate([a.history, b.history], axis=1),
+                       jax.tree_util.tree_map(cat, a.terms, b.terms), a.seconds + b.seconds)
+
+
 def _say(progress, text):
     if progress:
         print(text, file=sys.stderr, flush=True)
@@ -178,17 +187,25 @@ def synthesise(
     par = DoubleLoopParameterisation(bounds, ref, feedforward=feedforward)
     start = eqx.tree_at(lambda c: c.log_kv, ref, ref.log_kv + math.log(0.5))
     design = np.asarray(DESIGN_POSITIONS_M)
-    pos7 = np.concatenate([[FIXED_POSITION_M], design])
 
     t0 = time.perf_counter()
-    _say(progress, f"local designs at {', '.join(f'{y * 1e3:.0f}' for y in pos7)} mm")
-    local = tune_local(par, obj, drive, pos7, start, steps=local_steps,
-                       optimiser=_adam(local_steps), progress=progress)
+    _say(progress, f"MCM at {FIXED_POSITION_M * 1e3:.0f} mm")
+    at_115 = tune_local(par, obj, drive, [FIXED_POSITION_M], start, steps=local_steps,
+                        optimiser=_adam(local_steps), progress=progress)
+    # the six local designs start from the design at 115 mm, as a servo engineer would
+    _say(progress, f"local designs at {', '.join(f'{y * 1e3:.0f}' for y in design)} mm")
+    six = tune_local(par, obj, drive, design, at_115.best_theta[0], steps=local_steps,
+                     optimiser=_adam(local_steps), progress=progress)
+    local = _join(at_115, six)
     seconds["local"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     _say(progress, "six MCMs with common gains")
-    shared = tune_shared_gains(par, obj, drive, design, local.best_theta[1:],
+    # common gains and one MCM per position, from the design at 115 mm everywhere (stable
+    # with the margins over the travel on the reference drive), so that the schedule starts
+    # where the fixed MCM is and descends from there
+    shared = tune_shared_gains(par, obj, drive, design,
+                               jnp.broadcast_to(at_115.best_theta[0], six.best_theta.shape),
                                steps=shared_steps, optimiser=_adam(shared_steps, 0.02),
                                progress=progress)
     seconds["shared"] = time.perf_counter() - t0
