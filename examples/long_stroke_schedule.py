@@ -7,9 +7,16 @@ schedule's filters change during the motion as the drive's modes do.  The script
 
 1. evaluates the designs shipped with fdjax (the fixed MCM, the ATA network fitted by
    backpropagation, the network trained end to end on short strokes) on this motion;
-2. trains the end-to-end schedule's network further, end to end on the long stroke itself
-   (gradient through the whole moving-table simulation), and reports the RMS error before
-   and after and the certificate of the result every 1 mm (``--certify``).
+2. differentiates the long stroke's RMS error through the whole moving-table simulation, in
+   the network's weights and in the speed-loop gain, to show what a training on this motion
+   can move;
+3. with ``--steps N``, trains the end-to-end schedule's network N Adam steps on the long stroke
+   itself and reports the RMS error before and after (``--certify``: and certifies the result
+   every 1 mm).
+
+On the reference drive without feed-forward the long stroke's error is the position loop's
+lag at 0.3 m/s (1.4–2.0 mm RMS), which the filters hardly touch: measured, the largest
+derivative in a network weight is 1.5e-3 µm per unit weight, in ln k_v 0.29 µm.
 
 Usage:  python examples/long_stroke_schedule.py [--steps 20] [--certify]
 """
@@ -45,7 +52,7 @@ def rms_um(controller, drive, motion, twin):
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--steps", type=int, default=20, help="end-to-end steps on the long stroke")
+    ap.add_argument("--steps", type=int, default=0, help="end-to-end steps on the long stroke")
     ap.add_argument("--learning-rate", type=float, default=1e-3)
     ap.add_argument("--certify", action="store_true", help="certify the result every 1 mm")
     args = ap.parse_args()
@@ -71,6 +78,16 @@ def main():
         return r
 
     value_and_grad = eqx.filter_jit(jax.value_and_grad(loss))
+    t0 = time.perf_counter()
+    v, g = value_and_grad(params)
+    g_net = max(float(jax.numpy.max(jax.numpy.abs(x))) for x in jax.tree_util.tree_leaves(g))
+    g_kv = eqx.filter_jit(jax.grad(lambda kv: rms_um(
+        eqx.tree_at(lambda c: c.loop.log_kv, schedule, kv), drive, motion, twin)[0]))(
+        schedule.loop.log_kv)
+    print(f"gradient of the RMS error (µm) through the moving table: largest in a network "
+          f"weight {g_net:.3g}, in ln k_v {float(g_kv):.3g} ({time.perf_counter() - t0:.0f} s)")
+    if args.steps == 0:
+        return
     opt = optax.adam(args.learning_rate)
     state = opt.init(params)
     best, best_p = np.inf, params

@@ -177,6 +177,9 @@ class SampledData(AbstractLoopModel):
 
         s0 = jnp.zeros(system(positions[0]).A.shape[0])
 
+        # rematerialised in the reverse pass: a gradient keeps the state per sample, not the
+        # FE model and matrix exponentials of every sample (tens of GB for a 1 s run)
+        @jax.checkpoint
         def step(s, inputs):
             w, y_k, y_mid = inputs
             out, tr = system(y_k), system(y_mid)
