@@ -102,14 +102,15 @@ def loop_figures(out: str, pos, f, H) -> None:
 
     drive = fdjax.reference_drive()
     servo = reference_servo()
-    fam = np.linspace(0, len(pos) - 1, 7).round().astype(int)
+    # 115 mm (where the controller is tuned) and six positions to the screw end
+    fam_m = np.array([FIG16_POSITION_M, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7])
     f_s = np.geomspace(20.0, 0.995 * 0.5 / servo.period, 3000)
     c = reference_controller(drive)
-    how = dict(servo=servo, position_m=pos[fam])
+    how = dict(servo=servo, position_m=fam_m)
     without = fdjax.open_loop(_with_mcm(c, fdjax.MCM()), drive, f_s, **how)
     with_mcm = fdjax.open_loop(c, drive, f_s, **how)
     plots.plot_peak_filter_effect(
-        f_s, pos[fam], without.speed, with_mcm.speed, loop_label="speed loop $L_v$",
+        f_s, fam_m, without.speed, with_mcm.speed, loop_label="speed loop $L_v$",
         radius=2.5, band_hz=(1150.0, 1350.0), filter_label="MCM",
     ).savefig(os.path.join(out, "fig14_peak_filter.png"), dpi=90)
 
