@@ -1,4 +1,5 @@
-"""Timing shared by the benchmark scripts: median of repeats after a warm-up, results blocked."""
+"""Helpers shared by the benchmark scripts: timing (median of repeats after a warm-up, results
+blocked), the machine's load, writing the results."""
 
 import time
 
@@ -17,3 +18,27 @@ def median_time(fn, repeats, warmup=True):
         jax.block_until_ready(fn())
         times.append(time.perf_counter() - t0)
     return float(np.median(times)), [float(t) for t in times]
+
+
+def loadavg():
+    """The 1, 5 and 15 minute load averages (None where /proc is not there)."""
+    try:
+        with open("/proc/loadavg") as fh:
+            return [float(x) for x in fh.read().split()[:3]]
+    except OSError:
+        return None
+
+
+def write_results(out, result, markdown):
+    """Write ``result`` to the JSON file ``out`` and ``markdown`` beside it (``.md``); print
+    the markdown."""
+    import json
+    import os
+
+    os.makedirs(os.path.dirname(out), exist_ok=True)
+    with open(out, "w") as fh:
+        json.dump(result, fh, indent=2)
+    with open(os.path.splitext(out)[0] + ".md", "w") as fh:
+        fh.write(markdown)
+    print(markdown)
+    print(f"wrote {out}")

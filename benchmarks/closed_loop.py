@@ -40,7 +40,6 @@ Usage:  python benchmarks/closed_loop.py [--repeats 7] [--baseline-repeats 3] [-
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import time
@@ -51,7 +50,11 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from _timing import median_time  # benchmarks/ is on sys.path when run as a script
+from _timing import (  # benchmarks/ is on sys.path when run as a script
+    loadavg,
+    median_time,
+    write_results,
+)
 
 import fdjax
 
@@ -67,14 +70,6 @@ REF = fdjax.reciprocating(stroke=5e-3, v_max=0.1, a_max=2.0, j_max=200.0, cycles
 DRIVE = fdjax.table1_drive()
 N_MODES = fdjax.count_modes(DRIVE)
 TWIN = fdjax.TwinOptions(kept_modes=N_MODES)
-
-
-def loadavg():
-    try:
-        with open("/proc/loadavg") as fh:
-            return [float(x) for x in fh.read().split()[:3]]
-    except OSError:
-        return None
 
 
 
@@ -569,14 +564,7 @@ def main():
                     for k, v in checks.items()},
         "results": rows,
     }
-    os.makedirs(os.path.dirname(args.out), exist_ok=True)
-    with open(args.out, "w") as fh:
-        json.dump(result, fh, indent=2)
-    md = markdown(result)
-    with open(os.path.splitext(args.out)[0] + ".md", "w") as fh:
-        fh.write(md)
-    print(md)
-    print(f"wrote {args.out}")
+    write_results(args.out, result, markdown(result))
 
 
 if __name__ == "__main__":

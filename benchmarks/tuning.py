@@ -30,7 +30,6 @@ Usage:  python benchmarks/tuning.py [--steps 300] [--maxfev 1500] [--quick]
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import platform
@@ -42,7 +41,11 @@ import numpy as np
 import optax
 import scipy
 import scipy.optimize
-from _timing import median_time  # benchmarks/ is on sys.path when run as a script
+from _timing import (  # benchmarks/ is on sys.path when run as a script
+    loadavg,
+    median_time,
+    write_results,
+)
 
 import fdjax
 
@@ -51,14 +54,6 @@ LEARNING_RATE = 0.02
 SIMPLEX_STEP = 0.1
 SIMS_PER_GRADIENT_STEP = 2  # one forward and one reverse pass per position
 TARGETS = {"simulations_ratio": 20.0, "wall_time_ratio": 10.0, "six_tunings_s": 60.0}
-
-
-def loadavg():
-    try:
-        with open("/proc/loadavg") as fh:
-            return [float(x) for x in fh.read().split()[:3]]
-    except OSError:
-        return None
 
 
 def setup(n_positions=6):
@@ -408,14 +403,7 @@ def main():
         val = v["value"]
         v["met"] = None if val is None else bool(
             val <= v["target"] if k == "six_tunings_s" else val >= v["target"])
-    os.makedirs(os.path.dirname(args.out), exist_ok=True)
-    with open(args.out, "w") as fh:
-        json.dump(jsonable(result), fh, indent=2)
-    md = markdown(result)
-    with open(os.path.splitext(args.out)[0] + ".md", "w") as fh:
-        fh.write(md)
-    print(md)
-    print(f"wrote {args.out}")
+    write_results(args.out, jsonable(result), markdown(result))
 
 
 if __name__ == "__main__":

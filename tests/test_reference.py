@@ -59,7 +59,7 @@ def test_default_gains_stable_over_the_travel(drive):
     continuous; their sampled gain margins (plant input) are 8.0 dB and 16.6–22.2 dB."""
     positions = np.linspace(0.1, 0.7, 7)
     # the continuous loop at the reference servo's delay; the sampled one at both delays
-    cases = [(d, m) for d in (1, 2) for m in (fdjax.SampledData(),)] + [(2, fdjax.Continuous())]
+    cases = [(1, fdjax.SampledData()), (2, fdjax.SampledData()), (2, fdjax.Continuous())]
     for d, method in cases:
         for loop in (DoubleLoop(), PIDLoop()):
             st = fdjax.check_stability(loop, drive, position_m=positions, method=method,

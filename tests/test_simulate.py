@@ -422,7 +422,7 @@ def test_moving_table_sampled(drive):
     }
     assert _rel(effect["sampled"], effect["pade"]) < 2e-2
     # differentiable through the moving table (each sample rematerialised in the reverse pass):
-    # the gradient in log k_v against central differences
+    # the gradient in log k_v against central differences (measured 3e-9 relative at h = 1e-5)
     def rms(c):
         return fdjax.simulate(c, drive, fast, servo=SERVO, position_m=y0, duration=dur,
                               moving=True, twin=TWIN8).rms_error()
@@ -431,7 +431,7 @@ def test_moving_table_sampled(drive):
     g = eqx.filter_jit(eqx.filter_grad(rms))(loop).log_kv
     h = 1e-5
     fd = (float(rms(bump(h))) - float(rms(bump(-h)))) / (2 * h)
-    np.testing.assert_allclose(float(g), fd, rtol=1e-5)
+    np.testing.assert_allclose(float(g), fd, rtol=1e-7)
 
 
 def test_bad_input_messages(plant, reference):

@@ -240,3 +240,18 @@ def test_local_tuning_improves_every_position():
         fdjax.tune_local(par, obj, drive, np.array([115.0]), start)
     with pytest.raises(ValueError, match=r"`tune_local\(start=\.\.\.\)` must be a controller"):
         fdjax.tune_local(par, obj, drive, pos, np.zeros((3, 12)))
+
+
+def test_start_is_one_design_for_every_position_or_one_per_position():
+    from fdjax._tune._local import _start
+
+    drive = fdjax.reference_drive()
+    ref = fdjax.reference_controller(drive)
+    par = fdjax.DoubleLoopParameterisation(BOUNDS, ref)
+    theta = np.asarray(par.from_controller(ref))
+    rows = np.stack([theta, theta + 0.1, theta - 0.1])
+    np.testing.assert_array_equal(_start("tune_local", par, theta, 3), np.tile(theta, (3, 1)))
+    np.testing.assert_array_equal(_start("tune_local", par, ref, 3), np.tile(theta, (3, 1)))
+    np.testing.assert_array_equal(_start("tune_local", par, rows, 3), rows)
+    with pytest.raises(ValueError, match=r"have shape \(12,\) or \(2, 12\), got \(3, 12\)"):
+        _start("tune_local", par, rows, 2)

@@ -340,7 +340,7 @@ def tune_shared_gains(
     objective: Objective,
     drive: BallScrewDrive,
     positions_m: Float[ArrayLike, " n"],
-    start: Float[ArrayLike, "n p"],
+    start: Float[ArrayLike, "n p"] | Float[ArrayLike, " p"],
     *,
     n_shared: int = 5,
     steps: int = 200,
@@ -357,8 +357,8 @@ def tune_shared_gains(
         J_i = J(controller(θ_g, θ_i), Y_i),
 
     from ``start`` (n, p), e.g. the designs of :func:`tune_local` (the shared part starts at
-    their mean).  Returns a :class:`LocalTuning` whose rows share the first ``n_shared``
-    entries; ``history`` is J per position at every step.
+    their mean), or one design (p,) for every position.  Returns a :class:`LocalTuning` whose
+    rows share the first ``n_shared`` entries; ``history`` is J per position at every step.
     """
     fn = "tune_shared_gains"
     pos = _check_common(fn, parameterisation, objective, drive, positions_m, steps, chunk)

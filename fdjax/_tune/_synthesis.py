@@ -204,8 +204,7 @@ def synthesise(
     # common gains and one MCM per position, from the design at 115 mm everywhere (stable
     # with the margins over the travel on the reference drive), so that the schedule starts
     # where the fixed MCM is and descends from there
-    shared = tune_shared_gains(par, obj, drive, design,
-                               jnp.broadcast_to(at_115.best_theta[0], six.best_theta.shape),
+    shared = tune_shared_gains(par, obj, drive, design, at_115.best_theta[0],
                                steps=shared_steps, optimiser=_adam(shared_steps, 0.02),
                                progress=progress)
     seconds["shared"] = time.perf_counter() - t0
