@@ -40,7 +40,7 @@ class _EndToEndLoss(eqx.Module):
         schedule = eqx.combine(params, self.static)
         lo, hi = self.travel
         u = jax.random.uniform(key, (self.batch,), jnp.float64)
-        y = lo + (hi - lo) * (jnp.arange(self.batch) + u) / self.batch
+        y = lo + (hi - lo) * (jnp.arange(self.batch, dtype=jnp.float64) + u) / self.batch
         y = jnp.clip(y, lo, hi)
         j = jax.vmap(lambda p: self.objective(schedule, self.drive, p).total)(y)
         return 0.5 * (jnp.mean(j) + smooth_max(j, self.sharpness)), jnp.max(j)
@@ -56,6 +56,7 @@ def train_schedule(
     key: PRNGKeyArray | None = None,
     optimiser: optax.GradientTransformation | None = None,
     train_gains: bool = False,
+    train_feedforward: bool = False,
     sharpness: float = 2.0,
     chunk: int = 25,
     progress: bool = False,
@@ -70,7 +71,10 @@ def train_schedule(
         steps: optimiser steps; batch: positions per step (≥ 2).
         key: PRNG key of the position draws (default ``PRNGKey(0)``).
         optimiser: an optax transformation (default ``optax.adam(3e-3)``).
-        train_gains: also train the loop's gains (k_p, k_v, k_i, feed-forward).
+        train_gains: also train the loop's feedback gains (k_p, k_v, k_i).
+        train_feedforward: also train its feed-forward gains (k_ffv, k_ffa); off, they keep
+            their values (zero in a feedback-only loop), so that a feedback schedule is compared
+            with feedback designs.
         sharpness: β of the smooth maximum over the batch.
         chunk, progress: as :func:`fdjax.tune_local`.
 
@@ -97,9 +101,11 @@ def train_schedule(
     spec = eqx.tree_at(lambda s: s.network, spec,
                        jax.tree_util.tree_map(eqx.is_inexact_array, schedule.network))
     if train_gains:
-        gains = lambda s: (s.loop.log_kp, s.loop.log_kv, s.loop.log_ki, s.loop.k_ffv,  # noqa: E731
-                           s.loop.k_ffa)
-        spec = eqx.tree_at(gains, spec, (True,) * 5)
+        gains = lambda s: (s.loop.log_kp, s.loop.log_kv, s.loop.log_ki)  # noqa: E731
+        spec = eqx.tree_at(gains, spec, (True,) * 3)
+    if train_feedforward:
+        ff = lambda s: (s.loop.k_ffv, s.loop.k_ffa)  # noqa: E731
+        spec = eqx.tree_at(ff, spec, (True,) * 2)
     params, static = eqx.partition(schedule, spec)
     loss = _EndToEndLoss(static, objective, drive, tuple(float(v) for v in drive.travel_m),
                          batch, float(sharpness))

@@ -234,6 +234,7 @@ def synthesise(
     _say(progress, "ATA network trained end to end")
     schedule_e2e, e2e = train_schedule(schedule_bp, obj, drive, steps=e2e_steps,
                                        batch=e2e_batch, train_gains=train_gains,
+                                       train_feedforward=feedforward,
                                        optimiser=_adam(e2e_steps, 3e-3), progress=progress)
     seconds["end_to_end"] = time.perf_counter() - t0
 
