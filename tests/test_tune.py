@@ -138,15 +138,37 @@ def test_distances_are_the_margins():
     assert float(np.min(gain_distance(L, gm_db - 0.5))) > 1e-3
     assert float(np.min(phase_distance(L, pm + 1.0))) < 2e-3
     assert float(np.min(phase_distance(L, pm - 1.0))) > 1e-3
-    # distances against a brute-force oracle: the nearest of many points of the ray and the arc
+    # distances against a brute-force oracle: the nearest of many points of the segment and
+    # the arc (points spaced 7.5e-6 and 2.6e-5 apart)
     a = 10 ** (-6 / 20)
-    ray = -np.linspace(a, 50.0, 200001)
+    seg = -np.linspace(a, 1 / a, 200001)
     arc = np.exp(1j * (np.pi + np.linspace(-np.pi / 6, np.pi / 6, 20001)))
-    pts = L[::97]
+    pts = np.concatenate([L[::97], [-10.0 + 0.3j, -1.0 - 0.2j, -3.0, -0.2 + 0.1j]])
     np.testing.assert_allclose(gain_distance(pts, 6.0),
-                               np.min(np.abs(pts[:, None] - ray[None]), axis=1), atol=3e-4)
+                               np.min(np.abs(pts[:, None] - seg[None]), axis=1), atol=1e-5)
     np.testing.assert_allclose(phase_distance(pts, 30.0),
                                np.min(np.abs(pts[:, None] - arc[None]), axis=1), atol=1e-4)
+
+
+def test_gain_margin_penalty_counts_both_directions_as_the_exact_margin_does():
+    """A loop that crosses the negative real axis at |L| = 10 (a gain reduction of 20 dB
+    destabilises it, as at the low frequencies of a conditionally stable loop) and at
+    |L| = 0.25 (12 dB up) has a gain margin of 12 dB: no gain-margin penalty at 6 dB; scaled
+    by 5 (crossings at 50 and 1.25, margin 1.9 dB) it is penalised."""
+    from fdjax._tune import gain_distance, margin_penalty
+
+    t = np.linspace(0.0, 1.0, 4001)
+    # phase zero (on the negative real axis) at t = 1/4 and 3/4 only, |L| 20 → 0.1
+    r = np.exp(np.interp(t, [0.0, 0.25, 0.75, 1.0], np.log([20.0, 10.0, 0.25, 0.1])))
+    L = -r * np.exp(0.8j * np.sin(2 * np.pi * (t - 0.25)))
+    m = fdjax.stability_margins(np.linspace(1.0, 100.0, t.size), L)
+    np.testing.assert_allclose(float(m.gain_margin_db), 20 * np.log10(4.0), rtol=1e-3)
+    assert float(np.min(gain_distance(L, 6.0))) > 0.15  # measured 0.171
+    # the gain and phase terms (the modulus requirement dropped): measured 0.005; a crossing
+    # inside the segment costs at least (ln 2)²
+    assert float(margin_penalty(L, modulus_margin=0.01)) < 0.01
+    assert float(np.min(gain_distance(5.0 * L, 6.0))) < 1e-3
+    assert float(margin_penalty(5.0 * L, modulus_margin=0.01)) > np.log(2) ** 2
 
 
 def test_penalty_grows_with_gain_and_stays_finite():

@@ -8,8 +8,11 @@ by a smooth minimum of a distance over the grid:
 
 * modulus margin m: |1 + L| ≥ m, i.e. L outside the disc of radius m around −1
   (sensitivity peak ‖S‖∞ ≤ 1/m; m = 0.5 is the 6 dB sensitivity peak);
-* gain margin g (dB): no crossing of the negative real axis at |L| ≥ 10^{−g/20}, i.e. L off the
-  ray (−∞, −10^{−g/20}];
+* gain margin g (dB): no crossing of the negative real axis at 10^{−g/20} ≤ |L| ≤ 10^{g/20},
+  i.e. L off the segment [−10^{g/20}, −10^{−g/20}] (a gain change by a factor within
+  10^{±g/20} cannot destabilise the loop; a crossing at |L| > 10^{g/20}, that of a
+  conditionally stable loop's low frequencies, is a gain-reduction margin above g, as
+  :func:`fdjax.stability_margins` counts it);
 * phase margin φ: no unit-gain crossing within φ of −1, i.e. L off the arc
   {e^{iθ} : |θ − π| ≤ φ}.
 
@@ -42,20 +45,21 @@ def modulus_distance(L: Complex[ArrayLike, "*batch freq"]) -> Float[Array, "*bat
     return jnp.abs(1.0 + jnp.asarray(L))
 
 
-def _segment_distance(x, y, a):
-    """Distance of (x, y) from the ray {(−t, 0): t ≥ a}."""
-    dx = jnp.maximum(x + a, 0.0)  # to the right of the ray's end: distance to its end point
+def _segment_distance(x, y, a, b):
+    """Distance of (x, y) from the segment {(−t, 0): a ≤ t ≤ b}."""
+    dx = x - jnp.clip(x, -b, -a)  # beyond either end: the distance to that end point
     return jnp.sqrt(dx * dx + y * y + 1e-300)
 
 
 def gain_distance(
     L: Complex[ArrayLike, "*batch freq"], gain_margin_db: float
 ) -> Float[Array, "*batch freq"]:
-    r"""Distance of L from the ray (−∞, −a], a = 10^{−g/20}: zero where the Nyquist curve
-    crosses the negative real axis with a gain margin below g dB."""
+    r"""Distance of L from the segment [−1/a, −a] of the negative real axis, a = 10^{−g/20}:
+    zero where the Nyquist curve crosses the negative real axis with a gain margin below
+    g dB, up or down (a crossing at |L| = r is destabilised by the gain factor 1/r)."""
     L = jnp.asarray(L)
     a = 10.0 ** (-gain_margin_db / 20.0)
-    return _segment_distance(L.real, L.imag, a)
+    return _segment_distance(L.real, L.imag, a, 1.0 / a)
 
 
 def phase_distance(
@@ -88,7 +92,7 @@ def margin_penalty(
         P = Σ_j softplus((d_j − d̃_j)/w)²,
 
     d̃_j the smooth minimum of the j-th distance over the grid and d_j its requirement: the
-    modulus margin m for |1 + L|, and a clearance of w/4 from the gain-margin ray and the
+    modulus margin m for |1 + L|, and a clearance of w/4 from the gain-margin segment and the
     phase-margin arc (zero distance is the violation there).  ``beta`` sets the smooth
     minimum's sharpness (error ≤ log(n)/β), ``width`` w the penalty's scale.
     """
