@@ -15,8 +15,8 @@ schedule's filters change during the motion as the drive's modes do.  The script
    every 1 mm).
 
 On the reference drive without feed-forward the long stroke's error is the position loop's
-lag at 0.3 m/s (1.4–2.0 mm RMS), which the filters hardly touch: measured, the largest
-derivative in a network weight is 1.5e-3 µm per unit weight, in ln k_v 0.29 µm.
+lag at 0.3 m/s (1.5–1.7 mm RMS), which the filters hardly touch: measured, the largest
+derivative in a network weight is 6.5e-4 µm per unit weight, in ln k_v 0.086 µm.
 
 Usage:  python examples/long_stroke_schedule.py [--steps 20] [--certify]
 """
