@@ -156,6 +156,7 @@ _EXPORTS = {
         "MCMBounds",
         "LocalTuning",
         "tune_local",
+        "tune_simplex",
         "AbstractParameterisation",
         "PIDParameterisation",
         "PID_PARAMETERS",
@@ -361,4 +362,5 @@ if TYPE_CHECKING:
         tune_local as tune_local,
         tune_robust as tune_robust,
         tune_shared_gains as tune_shared_gains,
+        tune_simplex as tune_simplex,
     )

@@ -277,3 +277,53 @@ def test_start_is_one_design_for_every_position_or_one_per_position():
     np.testing.assert_array_equal(_start("tune_local", par, rows, 3), rows)
     with pytest.raises(ValueError, match=r"have shape \(12,\) or \(2, 12\), got \(3, 12\)"):
         _start("tune_local", par, rows, 2)
+
+
+# ------------------------------------------------------------------------------ the simplex
+def test_simplex_is_scipys_adaptive_nelder_mead():
+    """Evaluation for evaluation the same values as scipy's adaptive Nelder–Mead from the same
+    initial simplex (4-D Rosenbrock, 600 evaluations; measured 3.4e-13, round-off)."""
+    import scipy.optimize
+
+    from fdjax._tune._simplex import nelder_mead
+
+    x0 = np.array([-1.2, 1.0, 0.7, -0.3])
+    seen = []
+
+    def f(x):
+        v = float(np.sum(100.0 * (x[1:] - x[:-1] ** 2) ** 2 + (1 - x[:-1]) ** 2))
+        seen.append(v)
+        return v
+
+    scipy.optimize.minimize(f, x0, method="Nelder-Mead", options=dict(
+        adaptive=True, initial_simplex=np.vstack([x0, x0 + 0.1 * np.eye(4)]), maxfev=600,
+        xatol=0.0, fatol=0.0))
+    rosen = lambda x: jnp.sum(100.0 * (x[1:] - x[:-1] ** 2) ** 2 + (1 - x[:-1]) ** 2)  # noqa: E731
+    bx, bf, hist = jax.jit(lambda x: nelder_mead(rosen, x, 600, 0.1))(jnp.asarray(x0))
+    m = min(len(seen), 600)
+    assert m >= 590
+    np.testing.assert_allclose(np.asarray(hist)[:m], seen[:m], rtol=1e-11, atol=1e-12)
+    assert float(bf) == pytest.approx(min(seen[:600]), rel=1e-12)
+    np.testing.assert_allclose(float(rosen(bx)), float(bf), rtol=1e-14)
+
+
+def test_tune_simplex_improves_every_position_and_names_its_arguments():
+    """Two positions in one vmapped simplex from the reference controller (120 evaluations):
+    J falls at both and ``terms`` are those of ``best_theta``."""
+    drive = fdjax.reference_drive()
+    start = fdjax.reference_controller(drive)
+    par = fdjax.DoubleLoopParameterisation(BOUNDS, start)
+    ref = fdjax.reciprocating(stroke=1e-3, v_max=0.05, a_max=2.0, j_max=400.0, cycles=1)
+    obj = fdjax.Objective(ref, np.geomspace(5.0, 3900.0, 200),
+                          twin=fdjax.TwinOptions(kept_modes=6))
+    pos = np.array([0.115, 0.3])
+    r = fdjax.tune_simplex(par, obj, drive, pos, start, evaluations=120, chunk=60)
+    h = np.asarray(r.history)
+    assert h.shape == (120, 2)
+    best = np.asarray(r.terms.total)
+    np.testing.assert_allclose(best, np.min(h, axis=0), rtol=1e-10)
+    assert np.all(best < 0.5 * h[0]), (h[0], best)  # h[0]: the start itself
+    with pytest.raises(ValueError, match=r"`tune_simplex\(evaluations=\.\.\.\)` must exceed"):
+        fdjax.tune_simplex(par, obj, drive, pos, start, evaluations=10)
+    with pytest.raises(ValueError, match=r"`tune_simplex\(positions_m=\.\.\.\)` must be inside"):
+        fdjax.tune_simplex(par, obj, drive, np.array([300.0]), start)

@@ -10,6 +10,8 @@ steps cannot break.
 * ``_local``: :func:`tune_local`, one design per table position in one ``vmap``-ed optax run;
   :func:`tune_robust` (one design for all positions), :func:`tune_shared_gains` (one gain set,
   one MCM per position); :func:`descend`, the optax loop they share.
+* ``_simplex``: :func:`tune_simplex`, the adaptive Nelder–Mead simplex per position in one
+  ``vmap`` (a derivative-free search for the basin that the gradient then refines).
 * ``_end_to_end``: :func:`train_schedule`, the network trained against the objective itself.
 * ``_designs``: :func:`save_designs` / :func:`load_designs`, named controllers bit for bit.
 * ``_synthesis``: :func:`synthesise`, the whole chain of Fig. 18, and :func:`evaluate`.
@@ -63,6 +65,7 @@ from ._schedule import (
     load_schedule as load_schedule,
     save_schedule as save_schedule,
 )
+from ._simplex import tune_simplex as tune_simplex
 from ._synthesis import (
     CONTROLLERS as CONTROLLERS,
     Synthesis as Synthesis,

@@ -1,12 +1,14 @@
 r"""The whole gradient synthesis of paper Sec. 4.2 and Fig. 18 on one drive, as one function.
 
-1. **Local designs**: the full double loop (gains and MCM) tuned by :func:`tune_local` at
-   115 mm (the fixed MCM of Fig. 18), from the reference controller with k_v halved (stable at
-   every position), then at six positions over the travel from the design at 115 mm.
+1. **Local designs**: the full double loop (gains and MCM) at 115 mm (the fixed MCM of
+   Fig. 18): a simplex search (:func:`tune_simplex`) from the reference controller with k_v
+   halved (stable at every position) finds the basin, the gradient (:func:`tune_local`)
+   refines it; then the six positions over the travel by gradient from the design at 115 mm.
 2. **Common gains**: one gain set and one MCM per design position (:func:`tune_shared_gains`),
    what a schedule of the filters needs, from the design at 115 mm at every position.
-3. **Baselines**: a PID tuned at 115 mm (:func:`tune_local`), the robust PID
-   (:func:`tune_robust` over 13 positions), the MCM tuned at 115 mm held fixed, the six MCMs
+3. **Baselines**: a PID tuned at 115 mm by the same two stages, the robust PID
+   (:func:`tune_robust` over 13 positions, from the reference PID and from the PID tuned at
+   115 mm, the better of the two), the MCM tuned at 115 mm held fixed, the six MCMs
    interpolated linearly in their normalised parameters (:class:`InterpolatedLoop`).
 4. **The ATA network** fitted to the six MCMs by backpropagation (:func:`fit_network`), then
    **trained end to end** against the objective over the travel, with the loop's common gains
@@ -46,6 +48,7 @@ from ._local import Descent, LocalTuning, RobustTuning, tune_local, tune_robust,
 from ._objective import Objective
 from ._parameterisation import DoubleLoopParameterisation, MCMBounds, PIDParameterisation
 from ._schedule import ATANetwork, InterpolatedLoop, ScheduledLoop, fit_network
+from ._simplex import tune_simplex
 
 __all__ = ["CONTROLLERS", "Synthesis", "synthesise", "evaluate", "tuning_motion",
            "tuning_objective"]
@@ -98,6 +101,7 @@ class Synthesis:
         controllers: the six controllers of Fig. 18 by name (:data:`CONTROLLERS`).
         schedule_bp, schedule_e2e: the scheduled loops (backpropagation, end to end).
         local: the full local designs at 115 mm and the six design positions.
+        simplex: the simplex searches at 115 mm (``"mcm"``, ``"pid"``) the gradient starts from.
         shared: the six MCMs with common gains.
         pid_115, pid_robust: the PID tunings.
         network_loss: the backpropagation loss per step.
@@ -120,6 +124,7 @@ class Synthesis:
     design_positions_m: np.ndarray
     parameterisation: DoubleLoopParameterisation
     seconds: dict[str, float] = field(default_factory=dict)
+    simplex: dict[str, LocalTuning] = field(default_factory=dict)
 
     def local_table(self) -> dict[str, list]:
         """The local designs (common gains) per design position, physical units."""
@@ -163,6 +168,7 @@ def synthesise(
     network_steps: int = 4000,
     e2e_steps: int = 200,
     e2e_batch: int = 8,
+    simplex_evaluations: int = 3000,
     train_gains: bool = True,
     feedforward: bool = False,
     progress: bool = True,
@@ -174,7 +180,9 @@ def synthesise(
     has feed-forward, so the tracking error is that of the loop, which the MCM improves by
     raising the loop gains.  With feed-forward (``True``) the error on this drive is set by the
     axial compliance the rigid feed-forward leaves uncompensated, about the same for every
-    loop.  Steps are Adam with a cosine decay (:func:`tune_local`)."""
+    loop.  Steps are Adam with a cosine decay (:func:`tune_local`); ``simplex_evaluations``
+    evaluations of the simplex search at 115 mm (:func:`tune_simplex`) precede the gradient
+    there, for the MCM and for the PID."""
     drive = reference_drive() if drive is None else drive
     if not isinstance(drive, BallScrewDrive):
         raise TypeError(f"`synthesise(drive=...)` must be an fdjax.BallScrewDrive, got "
@@ -189,13 +197,16 @@ def synthesise(
     design = np.asarray(DESIGN_POSITIONS_M)
 
     t0 = time.perf_counter()
-    _say(progress, f"MCM at {FIXED_POSITION_M * 1e3:.0f} mm")
-    at_115 = tune_local(par, obj, drive, [FIXED_POSITION_M], start, steps=local_steps,
-                        optimiser=_adam(local_steps), progress=progress)
+    _say(progress, f"MCM at {FIXED_POSITION_M * 1e3:.0f} mm: simplex search, then gradient")
+    search = tune_simplex(par, obj, drive, [FIXED_POSITION_M], start,
+                          evaluations=simplex_evaluations, progress=progress)
+    at_115 = tune_local(par, obj, drive, [FIXED_POSITION_M], search.best_theta[0],
+                        steps=local_steps, optimiser=_adam(local_steps, 0.02),
+                        progress=progress)
     # the six local designs start from the design at 115 mm, as a servo engineer would
     _say(progress, f"local designs at {', '.join(f'{y * 1e3:.0f}' for y in design)} mm")
     six = tune_local(par, obj, drive, design, at_115.best_theta[0], steps=local_steps,
-                     optimiser=_adam(local_steps), progress=progress)
+                     optimiser=_adam(local_steps, 0.02), progress=progress)
     local = _join(at_115, six)
     seconds["local"] = time.perf_counter() - t0
 
@@ -213,12 +224,17 @@ def synthesise(
     k_ffv, k_ffa = rigid_feedforward(drive, servo) if feedforward else (1.0, 1.0)
     pid0 = reference_pid(k_ffv=k_ffv, k_ffa=k_ffa)
     ppar = PIDParameterisation(pid0, servo=servo, feedforward=feedforward)
-    _say(progress, "PID tuned at 115 mm")
-    pid_115 = tune_local(ppar, obj, drive, [FIXED_POSITION_M], pid0, steps=pid_steps,
-                         optimiser=_adam(pid_steps), progress=progress)
-    _say(progress, "robust PID over 13 positions")
-    pid_robust = tune_robust(ppar, obj, drive, np.linspace(0.1, 0.7, 13), pid0,
-                             steps=pid_steps, optimiser=_adam(pid_steps), progress=progress)
+    _say(progress, "PID at 115 mm: simplex search, then gradient")
+    pid_search = tune_simplex(ppar, obj, drive, [FIXED_POSITION_M], pid0,
+                              evaluations=simplex_evaluations, progress=progress)
+    pid_115 = tune_local(ppar, obj, drive, [FIXED_POSITION_M], pid_search.best_theta[0],
+                         steps=pid_steps, optimiser=_adam(pid_steps, 0.02), progress=progress)
+    _say(progress, "robust PID over 13 positions, from the reference PID and from the PID "
+                   "tuned at 115 mm")
+    robust = [tune_robust(ppar, obj, drive, np.linspace(0.1, 0.7, 13), s0, steps=pid_steps,
+                          optimiser=_adam(pid_steps), progress=progress)
+              for s0 in (ppar.from_controller(pid0), pid_115.best_theta[0])]
+    pid_robust = min(robust, key=lambda r: float(jnp.min(r.history)))
     seconds["pid"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -247,7 +263,8 @@ def synthesise(
         "mcm_ata_e2e": schedule_e2e,
     }
     return Synthesis(controllers, schedule_bp, schedule_e2e, local, shared, pid_115,
-                     pid_robust, np.asarray(loss), e2e, bounds, design, par, seconds)
+                     pid_robust, np.asarray(loss), e2e, bounds, design, par, seconds,
+                     {"mcm": search, "pid": pid_search})
 
 
 def evaluate(
