@@ -95,16 +95,19 @@ def test_demo_writes_figures(tmp_path):
             assert len(c[name][key]) == 61, (name, key)
     assert "fig18_rms_over_travel.png" in s["figures"]
     # the shipped schedules keep the required margins at every 10 mm (measured least: GM
-    # 10.5 dB, PM 44.8°, modulus margin 0.61) and beat their baselines (README's Fig. 18
-    # table: end to end 0.985× the backpropagation fit, 0.958× the fixed MCM)
+    # 10.0 dB, PM 40.1°, modulus margin 0.59), the designs tuned at 115 mm and held fixed do
+    # not (modulus margin 0.37 for the PID, 0.497 for the MCM, at 700 mm), and end to end
+    # beats the six-point fit everywhere (0.882–0.883×) at 0.58× the robust PID's worst
+    # error (README's Fig. 18 table)
     for name in ("mcm_ata", "mcm_ata_e2e"):
         assert all(c[name]["stable"]), name
         assert min(c[name]["gain_margin_db"]) > 6.0 and min(c[name]["phase_margin_deg"]) > 30.0
         assert min(c[name]["modulus_margin"]) > 0.5, name
+    for name in ("pid_115", "mcm_fixed"):
+        assert all(c[name]["stable"]) and c[name]["modulus_margin"][-1] < 0.5, name
     e2e, bp = (np.asarray(c[k]["rms_error_um"], float) for k in ("mcm_ata_e2e", "mcm_ata"))
-    fixed = np.asarray(c["mcm_fixed"]["rms_error_um"], float)
-    assert np.all(e2e < bp) and np.all(bp < fixed)
-    assert e2e.max() < 0.5 * max(c["pid_robust"]["rms_error_um"])
+    assert np.all(e2e < 0.9 * bp)
+    assert e2e.max() < 0.6 * max(c["pid_robust"]["rms_error_um"])
     sched = fdjax.load_schedule(out / "schedule.eqx")
     shipped, _ = fdjax.load_designs(cli.SHIPPED_DESIGNS)
     np.testing.assert_array_equal(sched.network(0.37), shipped["mcm_ata_e2e"].network(0.37))
