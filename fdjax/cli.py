@@ -432,9 +432,12 @@ def control_report(out: str, controllers: dict, *, certify_step_mm: float | None
             rms = [v for v in r["rms_error_um"] if v is not None]
             worst = f"{max(rms):.1f}" if rms else "—"
             n_bad = sum(not s for s in r["stable"])
+            mm = [v for v in r["modulus_margin"] if v is not None]
+            n_low = sum(v < 0.5 for v in mm)
+            low = f" (below 0.5 at {n_low} positions)" if n_low else ""
             print(f"  {r['label']:<30s} worst RMS {worst:>7s} µm, unstable at {n_bad} of "
-                  f"{len(r['stable'])} positions, least modulus margin "
-                  f"{min(v for v in r['modulus_margin'] if v is not None):.2f}", flush=True)
+                  f"{len(r['stable'])} positions, least modulus margin {min(mm):.3f}{low}",
+                  flush=True)
     return control
 
 
