@@ -1,5 +1,6 @@
 """The parameterisation of gradient synthesis: every θ gives an admissible controller."""
 
+import dataclasses
 import math
 
 import jax
@@ -223,6 +224,24 @@ def test_objective_is_finite_penalising_and_differentiable():
         fd = (float(J(theta0.at[i].add(h), 0.3).total)
               - float(J(theta0.at[i].add(-h), 0.3).total)) / (2 * h)
         np.testing.assert_allclose(g[i], fd, rtol=1e-4, atol=1e-6 * np.max(np.abs(g)))
+    # the margin term is margin_penalty of the three open loops, with the objective's width
+    # and sharpness (here the sharp penalties of tuning_objective: w = 0.01, β = 10/w)
+    sharp = dataclasses.replace(obj, margin_width=0.01, margin_sharpness=1000.0)
+    assert fdjax.tuning_objective(margin_width=0.01).margin_sharpness == 1000.0
+    terms = eqx.filter_jit(lambda th, y: sharp(par.to_controller(th), drive, y))(theta0, 0.3)
+    plant = fdjax.state_space(drive, 0.3, twin=fdjax.TwinOptions(kept_modes=6))
+    loops = fdjax.open_loop(par.to_controller(theta0), plant, obj.freq_hz)
+    wide_pen, sharp_pen = (
+        sum(float(fdjax.margin_penalty(L, width=w, beta=b))
+            for L in (loops.plant_input, loops.speed, loops.position))
+        for w, b in ((0.05, 200.0), (0.01, 1000.0)))
+    # the same open loops, computed apart from the simulation: round-off
+    np.testing.assert_allclose(float(good.margin_penalty), wide_pen, rtol=1e-9)
+    np.testing.assert_allclose(float(terms.margin_penalty), sharp_pen, rtol=1e-9)
+    np.testing.assert_allclose(terms.rms_error_m, good.rms_error_m, rtol=1e-12)
+    # the reference controller, tuned for the largest stable k_v, breaks requirements (its
+    # position loop's gain margin is below 6 dB): the sharp penalties grow faster past them
+    assert sharp_pen > 10 * wide_pen
 
 
 def test_objective_names_itself_in_errors():
@@ -235,6 +254,10 @@ def test_objective_names_itself_in_errors():
         obj(fdjax.DoubleLoop(), None, 0.3)
     with pytest.raises(ValueError, match=r"`Objective\(output=\.\.\.\)` must be 'scale' or"):
         fdjax.Objective(ref, np.geomspace(5.0, 3900.0, 64), output="x3")
+    for name in ("margin_width", "margin_sharpness"):
+        with pytest.raises(ValueError, match=rf"`Objective\({name}=\.\.\.\)` must be positive, "
+                                             r"got 0.0"):
+            fdjax.Objective(ref, np.geomspace(5.0, 3900.0, 64), **{name: 0.0})
 
 
 # ------------------------------------------------------------------------------ local tuning

@@ -72,6 +72,9 @@ class Objective(eqx.Module):
         error_scale_m: e_ref (m), static.
         modulus_margin, gain_margin_db, phase_margin_deg: the requirements (static).
         margin_weight, stability_weight, current_weight: w_m, w_s, w_c (static).
+        margin_width: the margin penalties' width w (static): a design settles where the
+            penalty's slope meets that of the error, a few w above each requirement.
+        margin_sharpness: the smooth minimum's β over the grid (static; error ≤ log(n)/β).
         max_growth_rate: g_max (1/s), static: the least stable pole must decay at least at −g_max.
         current_limit_a: i_max (A), static.
         duration: simulated time (s), static; default the reference's duration.
@@ -89,6 +92,8 @@ class Objective(eqx.Module):
     gain_margin_db: float = eqx.field(static=True, default=6.0)
     phase_margin_deg: float = eqx.field(static=True, default=30.0)
     margin_weight: float = eqx.field(static=True, default=10.0)
+    margin_width: float = eqx.field(static=True, default=0.05)
+    margin_sharpness: float = eqx.field(static=True, default=200.0)
     stability_weight: float = eqx.field(static=True, default=10.0)
     max_growth_rate: float = eqx.field(static=True, default=-5.0)
     current_weight: float = eqx.field(static=True, default=1.0)
@@ -112,7 +117,8 @@ class Objective(eqx.Module):
         if f.ndim != 1 or f.shape[0] < 8:
             raise ValueError(f"`Objective(freq_hz=...)` must be a 1-D grid of at least 8 "
                              f"frequencies, got shape {f.shape}")
-        for name in ("error_scale_m", "current_limit_a", "modulus_margin"):
+        for name in ("error_scale_m", "current_limit_a", "modulus_margin", "margin_width",
+                     "margin_sharpness"):
             if not float(getattr(self, name)) > 0:
                 raise ValueError(f"`Objective({name}=...)` must be positive, got "
                                  f"{getattr(self, name)!r}")
@@ -135,7 +141,8 @@ class Objective(eqx.Module):
         pen = sum(
             margin_penalty(L, modulus_margin=self.modulus_margin,
                            gain_margin_db=self.gain_margin_db,
-                           phase_margin_deg=self.phase_margin_deg)
+                           phase_margin_deg=self.phase_margin_deg,
+                           beta=self.margin_sharpness, width=self.margin_width)
             for L in (loops.plant_input, loops.speed, loops.position) if L is not None
         )
         g = sim.growth_rate

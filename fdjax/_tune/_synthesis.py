@@ -76,16 +76,22 @@ def tuning_motion() -> Trajectory:
 
 
 def tuning_objective(servo: Servo | None = None, *, feedforward: bool = False,
-                     kept_modes: int = 6) -> Objective:
+                     kept_modes: int = 6, margin_width: float = 0.05) -> Objective:
     """The objective of the synthesis: :class:`Objective` on :func:`tuning_motion`, margins on
     400 frequencies from 5 Hz to 3.9 kHz, the twin with ``kept_modes`` modes.  The error scale
     e_ref is 100 µm for feedback-only loops (their RMS error on this motion is 100–400 µm) and
     1 µm with feed-forward (1–5 µm), so that J is of order one and the margin penalties
-    weigh the same in both."""
+    weigh the same in both.  ``margin_width`` is the margin penalties' width w, and their
+    smooth minimum's β is 10/w (within (log 400)/β of the grid's minimum).  A design settles
+    where the penalties' slope meets the error's, a few w above each requirement: 0.1–0.15
+    above the modulus margin at the default w = 0.05, which is smooth for a search from afar
+    and leaves a schedule trained at a few positions per step room between them; about 0.02
+    above at w = 0.01 (``examples/margin_requirements.py`` compares them)."""
     return Objective(tuning_motion(), np.geomspace(5.0, 3900.0, 400),
                      servo=reference_servo() if servo is None else servo,
                      twin=TwinOptions(kept_modes=kept_modes),
-                     error_scale_m=1e-6 if feedforward else 1e-4)
+                     error_scale_m=1e-6 if feedforward else 1e-4,
+                     margin_width=margin_width, margin_sharpness=10.0 / margin_width)
 
 
 def _adam(steps: int, peak: float = 0.05) -> optax.GradientTransformation:
