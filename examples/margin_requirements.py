@@ -3,18 +3,19 @@
 Fig. 18's controllers are tuned against the objective of ``fdjax.tuning_objective``: RMS
 tracking error plus smooth penalties that keep the modulus margin ≥ 0.5, the gain margin
 ≥ 6 dB and the phase margin ≥ 30° at every break point of the sampled loop.  A smooth penalty
-acts before its requirement: with the synthesis's wide penalties (width w = 0.05) a design
-settles 0.05–0.15 above the modulus margin it needs.  This script starts from the designs
-shipped with fdjax (tuned with w = 0.05) and tunes them again at 115 mm
+acts before its requirement: the designs shipped with fdjax (``fdjax tune``, sharp penalties
+of width w = 0.01 at the end) settle 0.01–0.04 above the modulus margin they need, with wide
+ones (w = 0.05) a design settles 0.1–0.15 above.  This script tunes the shipped designs again
+at 115 mm
 
-* with sharp penalties (w = 0.01): the designs go up to their requirements;
+* with wide penalties (w = 0.05);
 * for tracking alone (no margin penalties; the growth-rate barrier keeps the loop stable at
   115 mm): what a servo engineer tuning "for performance" at one position gets, the paper's
   "PID parameters too high";
 
-and, with the sharp penalties, the robust PID (every position) and the end-to-end schedule.
-Then every design is evaluated over the travel: RMS error, stability and the exact sampled
-margins (``fdjax.evaluate``).  About 10 minutes on 2 cores.
+and the robust PID (every position) with the wide penalties.  Then every design is evaluated
+over the travel: RMS error, stability and the exact sampled margins (``fdjax.evaluate``).
+About 7 minutes on 2 cores.
 
 Usage:  python examples/margin_requirements.py [--steps 300] [--out margins.json]
 """
@@ -50,19 +51,18 @@ def main():
     drive = fdjax.reference_drive()
     servo = reference_servo()
     shipped, _ = fdjax.load_designs(fdjax.cli.SHIPPED_DESIGNS)
-    sharp = fdjax.tuning_objective(servo, margin_width=0.01)
-    alone = dataclasses.replace(fdjax.tuning_objective(servo, margin_width=0.05),
-                                margin_weight=0.0)
+    wide = fdjax.tuning_objective(servo, margin_width=0.05)
+    alone = dataclasses.replace(wide, margin_weight=0.0)
     mcm_par = fdjax.DoubleLoopParameterisation(fdjax.MCMBounds.for_servo(servo),
                                                shipped["mcm_fixed"], feedforward=False)
     pid_par = fdjax.PIDParameterisation(reference_pid(k_ffv=1.0, k_ffa=1.0), servo=servo,
                                         feedforward=False)
-    designs = {"PID at 115 mm, w = 0.05 (shipped)": shipped["pid_115"],
-               "MCM at 115 mm, w = 0.05 (shipped)": shipped["mcm_fixed"],
-               "robust PID, w = 0.05 (shipped)": shipped["pid_robust"],
-               "MCM + ATA end to end, w = 0.05 (shipped)": shipped["mcm_ata_e2e"]}
+    designs = {"PID at 115 mm, w = 0.01 (shipped)": shipped["pid_115"],
+               "MCM at 115 mm, w = 0.01 (shipped)": shipped["mcm_fixed"],
+               "robust PID, w = 0.01 (shipped)": shipped["pid_robust"],
+               "MCM + ATA end to end, w = 0.01 (shipped)": shipped["mcm_ata_e2e"]}
     for kind, par, name in (("PID", pid_par, "pid_115"), ("MCM", mcm_par, "mcm_fixed")):
-        for label, obj in (("w = 0.01", sharp), ("tracking alone", alone)):
+        for label, obj in (("w = 0.05", wide), ("tracking alone", alone)):
             t0 = time.perf_counter()
             r = fdjax.tune_local(par, obj, drive, [0.115], par.from_controller(shipped[name]),
                                  steps=args.steps, optimiser=adam(args.steps))
@@ -71,15 +71,10 @@ def main():
                   f"{float(np.min(r.history)):.4g} ({time.perf_counter() - t0:.0f} s)",
                   flush=True)
     t0 = time.perf_counter()
-    robust = fdjax.tune_robust(pid_par, sharp, drive, ROBUST_M, shipped["pid_robust"],
+    robust = fdjax.tune_robust(pid_par, wide, drive, ROBUST_M, shipped["pid_robust"],
                                steps=args.steps, optimiser=adam(args.steps))
-    designs["robust PID, w = 0.01"] = pid_par.to_controller(robust.best_theta)
-    print(f"robust PID, w = 0.01: {time.perf_counter() - t0:.0f} s", flush=True)
-    t0 = time.perf_counter()
-    e2e, _ = fdjax.train_schedule(shipped["mcm_ata_e2e"], sharp, drive, steps=args.steps // 2,
-                                  batch=8, train_gains=True, optimiser=optax.adam(3e-3))
-    designs["MCM + ATA end to end, w = 0.01"] = e2e
-    print(f"MCM + ATA end to end, w = 0.01: {time.perf_counter() - t0:.0f} s", flush=True)
+    designs["robust PID, w = 0.05"] = pid_par.to_controller(robust.best_theta)
+    print(f"robust PID, w = 0.05: {time.perf_counter() - t0:.0f} s", flush=True)
 
     results = fdjax.evaluate(designs, drive, POSITIONS_M, servo=servo, progress=False)
     table = {}

@@ -137,3 +137,15 @@ def test_end_to_end_training_lowers_the_objective_and_keeps_feedback_only():
     assert np.all(after < 0.8 * before), (before, after)
     for p in np.asarray(y):
         assert bool(fdjax.check_stability(trained.controller(p), drive, position_m=p).stable)
+
+
+def test_batch_covers_the_ends_and_one_position_per_stratum():
+    from fdjax._tune._end_to_end import batch_positions
+
+    for k in range(20):
+        y = np.asarray(batch_positions(jax.random.PRNGKey(k), (0.1, 0.7), 8))
+        assert y.shape == (8,) and y[0] == 0.1 and y[-1] == 0.7
+        strata = np.floor((y[1:-1] - 0.1) / 0.1).astype(int)   # 6 strata of 0.1 m
+        np.testing.assert_array_equal(strata, np.arange(6))
+    np.testing.assert_array_equal(batch_positions(jax.random.PRNGKey(0), (0.1, 0.7), 2),
+                                  [0.1, 0.7])

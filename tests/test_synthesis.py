@@ -181,3 +181,11 @@ def test_python_control_export_is_the_law_the_loop_runs():
     want_c = np.asarray(fdjax.reference_pid().law(None).transfer(jnp.asarray(s)))
     # ss → tf (polynomials) loses ~1e-7 near the integrator's pole at 3 Hz (measured 1.9e-7)
     np.testing.assert_allclose(np.stack([cont(sk)[0] for sk in s]), want_c, rtol=1e-6)
+
+
+def test_synthesise_names_its_arguments():
+    with pytest.raises(ValueError, match=r"`synthesise\(margin_width=\.\.\.\)` must be a "
+                                         r"positive number, got 0"):
+        fdjax.synthesise(margin_width=0, progress=False)
+    with pytest.raises(TypeError, match=r"`synthesise\(drive=\.\.\.\)` must be an fdjax"):
+        fdjax.synthesise("drive.json", progress=False)

@@ -1,9 +1,12 @@
 r"""End-to-end training of the scheduling network (paper Sec. 4.2 trains it on six local designs;
 here it is trained against the tuning objective itself, over the whole travel).
 
-At every step a batch of B positions is drawn across the travel, stratified,
+At every step a batch of B positions covers the travel: its two ends, where the drive's
+modes are furthest from the middle's and a schedule's margins are least, and B − 2 positions
+drawn between them, stratified,
 
-    Y_b = Y_min + (Y_max − Y_min)(b + u_b)/B,   u_b ~ U(0, 1),   b = 0 … B−1,
+    Y_0 = Y_min,  Y_b = Y_min + (Y_max − Y_min)(b − 1 + u_b)/(B − 2),  Y_{B−1} = Y_max,
+    u_b ~ U(0, 1),   b = 1 … B−2,
 
 and the network's weights (optionally the loop's gains) descend
 
@@ -18,14 +21,25 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import optax
-from jaxtyping import PRNGKeyArray
+from jaxtyping import Array, Float, PRNGKeyArray
 
 from .._drive._model import BallScrewDrive
 from ._local import Descent, descend, smooth_max
 from ._objective import Objective
 from ._schedule import ScheduledLoop
 
-__all__ = ["train_schedule"]
+__all__ = ["train_schedule", "batch_positions"]
+
+
+def batch_positions(key: PRNGKeyArray, travel: tuple[float, float],
+                    batch: int) -> Float[Array, " batch"]:
+    """The positions of one step (module docstring): the travel's ends and ``batch`` − 2
+    positions drawn between them, one in each of ``batch`` − 2 equal strata (ascending)."""
+    lo, hi = travel
+    n = batch - 2
+    u = jax.random.uniform(key, (n,), jnp.float64)
+    inner = lo + (hi - lo) * (jnp.arange(n, dtype=jnp.float64) + u) / max(n, 1)
+    return jnp.concatenate([jnp.array([lo]), jnp.clip(inner, lo, hi), jnp.array([hi])])
 
 
 class _EndToEndLoss(eqx.Module):
@@ -38,10 +52,7 @@ class _EndToEndLoss(eqx.Module):
 
     def __call__(self, params, key):
         schedule = eqx.combine(params, self.static)
-        lo, hi = self.travel
-        u = jax.random.uniform(key, (self.batch,), jnp.float64)
-        y = lo + (hi - lo) * (jnp.arange(self.batch, dtype=jnp.float64) + u) / self.batch
-        y = jnp.clip(y, lo, hi)
+        y = batch_positions(key, self.travel, self.batch)
         j = jax.vmap(lambda p: self.objective(schedule, self.drive, p).total)(y)
         return 0.5 * (jnp.mean(j) + smooth_max(j, self.sharpness)), jnp.max(j)
 
@@ -68,7 +79,8 @@ def train_schedule(
         schedule: the scheduled loop to start from.
         objective: J(controller, Y).
         drive: the drive (positions are drawn over its travel).
-        steps: optimiser steps; batch: positions per step (≥ 2).
+        steps: optimiser steps; batch: positions per step (≥ 2): the travel's two ends and
+            ``batch`` − 2 drawn between them.
         key: PRNG key of the position draws (default ``PRNGKey(0)``).
         optimiser: an optax transformation (default ``optax.adam(3e-3)``).
         train_gains: also train the loop's feedback gains (k_p, k_v, k_i).

@@ -2,14 +2,19 @@ r"""The whole gradient synthesis of paper Sec. 4.2 and Fig. 18 on one drive, as 
 
 1. **Local designs**: the full double loop (gains and MCM) at 115 mm (the fixed MCM of
    Fig. 18): a simplex search (:func:`tune_simplex`) from the reference controller with k_v
-   halved (stable at every position) finds the basin, the gradient (:func:`tune_local`)
-   refines it; then the six positions over the travel by gradient from the design at 115 mm.
+   halved (stable at every position) finds the basin and the gradient (:func:`tune_local`)
+   descends it, both on the objective with wide margin penalties (w = 0.05: smooth far from
+   the requirements); the gradient then continues on the objective with sharp penalties
+   (``margin_width``, default 0.01), which takes the design up to its requirements.  Then the
+   six positions over the travel by gradient from the design at 115 mm.  Every stage from
+   here on uses the sharp objective.
 2. **Common gains**: one gain set and one MCM per design position (:func:`tune_shared_gains`),
    what a schedule of the filters needs, from the design at 115 mm at every position.
-3. **Baselines**: a PID tuned at 115 mm by the same two stages, the robust PID
+3. **Baselines**: a PID tuned at 115 mm by the same three stages, the robust PID
    (:func:`tune_robust` over 13 positions, from the reference PID and from the PID tuned at
-   115 mm, the better of the two), the MCM tuned at 115 mm held fixed, the six MCMs
-   interpolated linearly in their normalised parameters (:class:`InterpolatedLoop`).
+   115 mm with wide penalties, the better of the two continued with sharp ones), the MCM
+   tuned at 115 mm held fixed, the six MCMs interpolated linearly in their normalised
+   parameters (:class:`InterpolatedLoop`).
 4. **The ATA network** fitted to the six MCMs by backpropagation (:func:`fit_network`), then
    **trained end to end** against the objective over the travel, with the loop's common gains
    (:func:`train_schedule`).
@@ -67,6 +72,7 @@ LABELS = {
 
 DESIGN_POSITIONS_M = tuple(float(v) for v in np.linspace(0.1, 0.7, 6))
 FIXED_POSITION_M = 0.115
+WIDE_MARGIN_WIDTH = 0.05
 
 
 def tuning_motion() -> Trajectory:
@@ -79,14 +85,14 @@ def tuning_objective(servo: Servo | None = None, *, feedforward: bool = False,
                      kept_modes: int = 6, margin_width: float = 0.05) -> Objective:
     """The objective of the synthesis: :class:`Objective` on :func:`tuning_motion`, margins on
     400 frequencies from 5 Hz to 3.9 kHz, the twin with ``kept_modes`` modes.  The error scale
-    e_ref is 100 µm for feedback-only loops (their RMS error on this motion is 100–400 µm) and
+    e_ref is 100 µm for feedback-only loops (their RMS error on this motion is 85–200 µm) and
     1 µm with feed-forward (1–5 µm), so that J is of order one and the margin penalties
     weigh the same in both.  ``margin_width`` is the margin penalties' width w, and their
     smooth minimum's β is 10/w (within (log 400)/β of the grid's minimum).  A design settles
     where the penalties' slope meets the error's, a few w above each requirement: 0.1–0.15
-    above the modulus margin at the default w = 0.05, which is smooth for a search from afar
-    and leaves a schedule trained at a few positions per step room between them; about 0.02
-    above at w = 0.01 (``examples/margin_requirements.py`` compares them)."""
+    above the modulus margin at the default w = 0.05, which is smooth for a search from afar;
+    0.01–0.04 above at w = 0.01, where :func:`synthesise` finishes every design
+    (``examples/margin_requirements.py`` compares them)."""
     return Objective(tuning_motion(), np.geomspace(5.0, 3900.0, 400),
                      servo=reference_servo() if servo is None else servo,
                      twin=TwinOptions(kept_modes=kept_modes),
@@ -108,6 +114,8 @@ class Synthesis:
         schedule_bp, schedule_e2e: the scheduled loops (backpropagation, end to end).
         local: the full local designs at 115 mm and the six design positions.
         simplex: the simplex searches at 115 mm (``"mcm"``, ``"pid"``) the gradient starts from.
+        coarse: the gradient stages with wide margin penalties that the sharp ones continue
+            (``"mcm"``, ``"pid"`` at 115 mm; ``"pid_robust"``).
         shared: the six MCMs with common gains.
         pid_115, pid_robust: the PID tunings.
         network_loss: the backpropagation loss per step.
@@ -131,6 +139,7 @@ class Synthesis:
     parameterisation: DoubleLoopParameterisation
     seconds: dict[str, float] = field(default_factory=dict)
     simplex: dict[str, LocalTuning] = field(default_factory=dict)
+    coarse: dict = field(default_factory=dict)
 
     def local_table(self) -> dict[str, list]:
         """The local designs (common gains) per design position, physical units."""
@@ -177,6 +186,7 @@ def synthesise(
     simplex_evaluations: int = 3000,
     train_gains: bool = True,
     feedforward: bool = False,
+    margin_width: float = 0.01,
     progress: bool = True,
 ) -> Synthesis:
     """Run the synthesis of the module docstring on ``drive`` (default
@@ -188,14 +198,23 @@ def synthesise(
     axial compliance the rigid feed-forward leaves uncompensated, about the same for every
     loop.  Steps are Adam with a cosine decay (:func:`tune_local`); ``simplex_evaluations``
     evaluations of the simplex search at 115 mm (:func:`tune_simplex`) precede the gradient
-    there, for the MCM and for the PID."""
+    there, for the MCM and for the PID; both, and ``local_steps`` (``pid_steps``) of the
+    gradient after them, run on the objective with wide margin penalties
+    (:func:`tuning_objective` with w = 0.05), then as many steps on the objective with
+    ``margin_width`` (the one every later stage uses)."""
     drive = reference_drive() if drive is None else drive
     if not isinstance(drive, BallScrewDrive):
         raise TypeError(f"`synthesise(drive=...)` must be an fdjax.BallScrewDrive, got "
                         f"{type(drive).__name__}")
     servo = reference_servo() if servo is None else servo
     seconds = {}
-    obj = tuning_objective(servo, feedforward=feedforward)
+    if not (isinstance(margin_width, (int, float)) and margin_width > 0):
+        raise ValueError(f"`synthesise(margin_width=...)` must be a positive number, got "
+                         f"{margin_width!r}")
+    obj = tuning_objective(servo, feedforward=feedforward, margin_width=margin_width)
+    # a continuation in the penalties' width: the wide ones find and descend a basin from
+    # afar, the sharp ones take the design up to its requirements
+    wide = tuning_objective(servo, feedforward=feedforward, margin_width=WIDE_MARGIN_WIDTH)
     bounds = MCMBounds.for_servo(servo)
     ref = reference_controller(drive, servo)
     par = DoubleLoopParameterisation(bounds, ref, feedforward=feedforward)
@@ -204,11 +223,8 @@ def synthesise(
 
     t0 = time.perf_counter()
     _say(progress, f"MCM at {FIXED_POSITION_M * 1e3:.0f} mm: simplex search, then gradient")
-    search = tune_simplex(par, obj, drive, [FIXED_POSITION_M], start,
-                          evaluations=simplex_evaluations, progress=progress)
-    at_115 = tune_local(par, obj, drive, [FIXED_POSITION_M], search.best_theta[0],
-                        steps=local_steps, optimiser=_adam(local_steps, 0.02),
-                        progress=progress)
+    search, coarse, at_115 = _at_115(par, wide, obj, drive, start, simplex_evaluations,
+                                     local_steps, progress)
     # the six local designs start from the design at 115 mm, as a servo engineer would
     _say(progress, f"local designs at {', '.join(f'{y * 1e3:.0f}' for y in design)} mm")
     six = tune_local(par, obj, drive, design, at_115.best_theta[0], steps=local_steps,
@@ -231,16 +247,19 @@ def synthesise(
     pid0 = reference_pid(k_ffv=k_ffv, k_ffa=k_ffa)
     ppar = PIDParameterisation(pid0, servo=servo, feedforward=feedforward)
     _say(progress, "PID at 115 mm: simplex search, then gradient")
-    pid_search = tune_simplex(ppar, obj, drive, [FIXED_POSITION_M], pid0,
-                              evaluations=simplex_evaluations, progress=progress)
-    pid_115 = tune_local(ppar, obj, drive, [FIXED_POSITION_M], pid_search.best_theta[0],
-                         steps=pid_steps, optimiser=_adam(pid_steps, 0.02), progress=progress)
+    pid_search, pid_coarse, pid_115 = _at_115(ppar, wide, obj, drive, pid0,
+                                              simplex_evaluations, pid_steps, progress)
     _say(progress, "robust PID over 13 positions, from the reference PID and from the PID "
                    "tuned at 115 mm")
-    robust = [tune_robust(ppar, obj, drive, np.linspace(0.1, 0.7, 13), s0, steps=pid_steps,
+    robust_y = np.linspace(0.1, 0.7, 13)
+    robust = [tune_robust(ppar, wide, drive, robust_y, s0, steps=pid_steps,
                           optimiser=_adam(pid_steps), progress=progress)
-              for s0 in (ppar.from_controller(pid0), pid_115.best_theta[0])]
-    pid_robust = min(robust, key=lambda r: float(jnp.min(r.history)))
+              for s0 in (ppar.from_controller(pid0), pid_coarse.best_theta[0])]
+    robust_coarse = min(robust, key=lambda r: float(jnp.min(r.history)))
+    _say(progress, "robust PID: sharp margin penalties")
+    pid_robust = tune_robust(ppar, obj, drive, robust_y, robust_coarse.best_theta,
+                             steps=pid_steps, optimiser=_adam(pid_steps, 0.02),
+                             progress=progress)
     seconds["pid"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -270,7 +289,22 @@ def synthesise(
     }
     return Synthesis(controllers, schedule_bp, schedule_e2e, local, shared, pid_115,
                      pid_robust, np.asarray(loss), e2e, bounds, design, par, seconds,
-                     {"mcm": search, "pid": pid_search})
+                     {"mcm": search, "pid": pid_search},
+                     {"mcm": coarse, "pid": pid_coarse, "pid_robust": robust_coarse})
+
+
+def _at_115(par, wide, sharp, drive, start, evaluations, steps, progress):
+    """The design at 115 mm: simplex and gradient on the wide-penalty objective, then the
+    gradient on the sharp one."""
+    y = [FIXED_POSITION_M]
+    search = tune_simplex(par, wide, drive, y, start, evaluations=evaluations,
+                          progress=progress)
+    coarse = tune_local(par, wide, drive, y, search.best_theta[0], steps=steps,
+                        optimiser=_adam(steps, 0.02), progress=progress)
+    _say(progress, "sharp margin penalties")
+    fine = tune_local(par, sharp, drive, y, coarse.best_theta[0], steps=steps,
+                      optimiser=_adam(steps, 0.02), progress=progress)
+    return search, coarse, fine
 
 
 def evaluate(
