@@ -370,8 +370,9 @@ def control_report(out: str, controllers: dict, *, certify_step_mm: float | None
     drive = fdjax.reference_drive()
     os.makedirs(out, exist_ok=True)
     meta = {"drive": "fdjax.reference_drive()", "servo": "fdjax.Servo() (8 kHz, d = 2)",
-            "objective": "fdjax.tuning_objective(): RMS scale error of a 1 mm reciprocating "
-                         "stroke + margin, stability and current penalties",
+            "objective": "fdjax.tuning_objective(margin_width=0.01), after searches with "
+                         "margin_width=0.05: RMS scale error of a 1 mm reciprocating stroke + "
+                         "margin, stability and current penalties",
             "feedforward": False, **(metadata or {})}
     fdjax.save_designs(out, controllers, metadata=meta)
     fdjax.save_schedule(os.path.join(out, "schedule.eqx"), controllers["mcm_ata_e2e"],
