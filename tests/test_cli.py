@@ -98,7 +98,7 @@ def test_demo_writes_figures(tmp_path):
     # PM 36.3°, modulus margin 0.508 for the schedules, 0.519 for the fixed MCM, 0.526 for the
     # robust PID), the PID tuned at 115 mm and held fixed does not (modulus margin 0.24, GM
     # 3.88 dB at 700 mm) but stays stable with its error flat; the MCMs run at 0.75× the robust
-    # PID's error, and on this drive the schedules keep the fixed design (README's Fig. 18)
+    # PID's error, and the shipped schedules equal the fixed design (README's Fig. 18)
     for name in ("mcm_fixed", "mcm_interp", "mcm_ata", "mcm_ata_e2e", "pid_robust"):
         assert all(c[name]["stable"]), name
         assert min(c[name]["gain_margin_db"]) > 6.0 and min(c[name]["phase_margin_deg"]) > 30.0
