@@ -450,7 +450,7 @@ def tune(out: str, quick: bool = False) -> dict:
 
     start = time.perf_counter()
     steps = dict(local_steps=30, shared_steps=20, pid_steps=30, network_steps=2000,
-                 e2e_steps=20, simplex_evaluations=300) if quick else {}
+                 e2e_steps=10, simplex_evaluations=300, refine_steps=10) if quick else {}
     syn = fdjax.synthesise(progress=True, **steps)
     control = control_report(out, syn.controllers, synthesis=syn,
                              certify_step_mm=None if quick else 1.0,

@@ -94,23 +94,30 @@ def test_demo_writes_figures(tmp_path):
                     "modulus_margin"):
             assert len(c[name][key]) == 61, (name, key)
     assert "fig18_rms_over_travel.png" in s["figures"]
-    # the shipped designs keep the required margins at every 10 mm (measured least: GM 8.37 dB,
-    # PM 36.3°, modulus margin 0.508 for the schedules, 0.519 for the fixed MCM, 0.526 for the
-    # robust PID), the PID tuned at 115 mm and held fixed does not (modulus margin 0.24, GM
-    # 3.88 dB at 700 mm) but stays stable with its error flat; the MCMs run at 0.75× the robust
-    # PID's error, and the shipped schedules equal the fixed design (README's Fig. 18)
-    for name in ("mcm_fixed", "mcm_interp", "mcm_ata", "mcm_ata_e2e", "pid_robust"):
+    # the shipped designs (README's Fig. 18): the schedules and the robust PID keep the
+    # required margins at every 10 mm (measured least: GM 6.51 dB, PM 32.1°, modulus margin
+    # 0.505 for the schedules, 0.526 for the robust PID); the MCM tuned at 115 mm and held
+    # fixed does not (modulus margin 0.526 → 0.390, below 0.5 from 220 mm; GM 5.73 dB at
+    # 700 mm) but stays stable with its error flat at 68.6–68.7 µm, below the schedules'; the
+    # PID tuned at 115 mm likewise (modulus margin 0.241, GM 3.89 dB at 700 mm); end to end is
+    # 0.965–0.967× the backpropagation schedule's error at every position and 0.694× the
+    # robust PID's in the worst case
+    for name in ("mcm_interp", "mcm_ata", "mcm_ata_e2e", "pid_robust"):
         assert all(c[name]["stable"]), name
         assert min(c[name]["gain_margin_db"]) > 6.0 and min(c[name]["phase_margin_deg"]) > 30.0
         assert min(c[name]["modulus_margin"]) > 0.5, name
+    fixed = c["mcm_fixed"]
+    assert all(fixed["stable"])
+    assert fixed["modulus_margin"][-1] < 0.4 < 0.5 < fixed["modulus_margin"][0]
+    assert fixed["gain_margin_db"][-1] < 6.0 < fixed["gain_margin_db"][0]
     pid = c["pid_115"]
     assert all(pid["stable"]) and pid["modulus_margin"][-1] < 0.25 < 0.5 < pid["modulus_margin"][0]
     assert np.ptp(pid["rms_error_um"]) < 0.003 * np.max(pid["rms_error_um"])
     rms = {k: np.asarray(c[k]["rms_error_um"], float) for k in fdjax.CONTROLLERS}
-    assert np.all(rms["mcm_ata_e2e"] <= rms["mcm_ata"] * (1 + 1e-12))   # end to end: no worse
-    for name in ("mcm_interp", "mcm_ata", "mcm_ata_e2e"):
-        np.testing.assert_allclose(rms[name], rms["mcm_fixed"], rtol=2e-5)
-    assert rms["mcm_ata_e2e"].max() < 0.76 * rms["pid_robust"].max()
+    assert np.ptp(rms["mcm_fixed"]) < 0.003 * np.max(rms["mcm_fixed"])
+    assert np.all(rms["mcm_fixed"] < rms["mcm_ata_e2e"])
+    assert np.all(rms["mcm_ata_e2e"] <= 0.97 * rms["mcm_ata"])   # end to end: better everywhere
+    assert rms["mcm_ata_e2e"].max() < 0.70 * rms["pid_robust"].max()
     sched = fdjax.load_schedule(out / "schedule.eqx")
     shipped, _ = fdjax.load_designs(cli.SHIPPED_DESIGNS)
     np.testing.assert_array_equal(sched.network(0.37), shipped["mcm_ata_e2e"].network(0.37))

@@ -139,6 +139,35 @@ def test_end_to_end_training_lowers_the_objective_and_keeps_feedback_only():
         assert bool(fdjax.check_stability(trained.controller(p), drive, position_m=p).stable)
 
 
+def test_end_to_end_on_fixed_positions_by_lbfgs():
+    """On fixed positions the objective is deterministic and L-BFGS trains the schedule: the
+    first value of the history is ½(mean + smax) of J at those positions, computed here
+    independently, and the best value is lower; positions outside the travel are refused."""
+    drive = fdjax.reference_drive()
+    ref = fdjax.reference_controller(drive)
+    soft = eqx.tree_at(lambda c: (c.log_kv, c.k_ffv, c.k_ffa), ref,
+                       (ref.log_kv + np.log(0.5), jnp.asarray(0.0), jnp.asarray(0.0)))
+    target = np.tile(np.asarray(BOUNDS.from_mcm(ref.mcm)), (6, 1))
+    net, _ = fdjax.fit_network(fdjax.ATANetwork((0.1, 0.7), width=4, key=jax.random.PRNGKey(5)),
+                               POSITIONS, target, steps=1500)
+    start = fdjax.ScheduledLoop(soft, net, BOUNDS)
+    motion = fdjax.reciprocating(stroke=1e-3, v_max=0.05, a_max=2.0, j_max=400.0, cycles=1)
+    obj = fdjax.Objective(motion, np.geomspace(5.0, 3900.0, 200),
+                          twin=fdjax.TwinOptions(kept_modes=4), error_scale_m=1e-4)
+    y = np.array([0.1, 0.4, 0.7])
+    with pytest.raises(ValueError, match=r"`train_schedule\(positions_m=\.\.\.\)` must be a "
+                                         r"non-empty 1-D array inside the travel"):
+        fdjax.train_schedule(start, obj, drive, positions_m=[0.1, 400.0])
+    trained, rec = fdjax.train_schedule(start, obj, drive, steps=3, chunk=3, positions_m=y,
+                                        optimiser=optax.lbfgs())
+    j = np.asarray(eqx.filter_jit(jax.vmap(lambda p: obj(start, drive, p).total))(
+        jnp.asarray(y)))
+    expected = 0.5 * (j.mean() + float(fdjax.smooth_max(jnp.asarray(j), 2.0)))
+    h = np.asarray(rec.history)
+    np.testing.assert_allclose(h[0], expected, rtol=1e-12)
+    assert h.min() < 0.9 * h[0], h
+
+
 def test_batch_covers_the_ends_and_one_position_per_stratum():
     from fdjax._tune._end_to_end import batch_positions
 

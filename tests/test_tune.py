@@ -275,6 +275,7 @@ def test_local_tuning_improves_every_position():
     r = fdjax.tune_local(par, obj, drive, pos, start, steps=20, chunk=10)
     h = np.asarray(r.history)
     assert h.shape == (20, 2)
+    np.testing.assert_array_equal(np.asarray(r.evaluations), np.ones((20, 2)))  # one a step
     best = np.asarray(r.terms.total)
     assert np.all(best < 0.5 * h[0]), (h[0], best)
     assert np.all(np.asarray(r.terms.stable))
@@ -285,6 +286,34 @@ def test_local_tuning_improves_every_position():
         fdjax.tune_local(par, obj, drive, np.array([115.0]), start)
     with pytest.raises(ValueError, match=r"`tune_local\(start=\.\.\.\)` must be a controller"):
         fdjax.tune_local(par, obj, drive, pos, np.zeros((3, 12)))
+
+
+def test_local_tuning_by_lbfgs_keeps_the_positions_apart():
+    """L-BFGS (a line search on the objective at each position) in the vmapped run: the
+    objective falls at both positions, and the run at 300 mm is the run of that position alone
+    (each position's line search sees its own objective; equal to round-off, measured 1e-15
+    relative)."""
+    import optax
+
+    drive = fdjax.reference_drive()
+    start = fdjax.reference_controller(drive)
+    par = fdjax.DoubleLoopParameterisation(fdjax.MCMBounds.for_servo(fdjax.Servo()), start)
+    ref = fdjax.reciprocating(stroke=1e-3, v_max=0.05, a_max=2.0, j_max=400.0, cycles=1)
+    obj = fdjax.Objective(ref, np.geomspace(5.0, 3900.0, 200),
+                          twin=fdjax.TwinOptions(kept_modes=4))
+    both = fdjax.tune_local(par, obj, drive, np.array([0.115, 0.3]), start, steps=4, chunk=4,
+                            optimiser=optax.lbfgs())
+    alone = fdjax.tune_local(par, obj, drive, np.array([0.3]), start, steps=4, chunk=4,
+                             optimiser=optax.lbfgs())
+    h = np.asarray(both.history)
+    assert np.all(np.asarray(both.terms.total) < 0.5 * h[0]), (h[0], both.terms.total)
+    np.testing.assert_allclose(np.asarray(both.history)[:, 1], np.asarray(alone.history)[:, 0],
+                               rtol=1e-12)
+    np.testing.assert_allclose(both.best_theta[1], alone.best_theta[0], rtol=1e-12, atol=1e-12)
+    # evaluations: the line search's trials, at least one per step, and the start's
+    n = np.asarray(both.evaluations)
+    assert n.shape == (4, 2) and np.all(n >= 1) and np.all(n[0] >= 2), n
+    np.testing.assert_array_equal(n[:, 1], np.asarray(alone.evaluations)[:, 0])
 
 
 def test_start_is_one_design_for_every_position_or_one_per_position():

@@ -26,6 +26,7 @@ from .._control._controllers import AbstractController
 from .._control._servo import Servo
 from .._drive._model import BallScrewDrive
 from .._drive._twin import TwinOptions, state_space
+from .._memory import release
 from .._simulation import SampledData, simulate
 from .._trajectory import Trajectory
 from ._schedule import InterpolatedLoop, ScheduledLoop
@@ -212,6 +213,7 @@ def certify(
     y = np.asarray(drive._check_travel(y, fn))
     f = default_grid(servo) if freq_hz is None else np.asarray(freq_hz, float)
     twin = (TwinOptions() if twin is None else twin).resolve(drive, fn)
+    release()
     checks = point_checks(fixed_controllers(controller, y), drive, y, servo=servo, freq_hz=f,
                           twin=twin)
     return certificate(y, checks, gain_margin_db, phase_margin_deg, modulus_margin)

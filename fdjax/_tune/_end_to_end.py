@@ -1,7 +1,8 @@
 r"""End-to-end training of the scheduling network (paper Sec. 4.2 trains it on six local designs;
 here it is trained against the tuning objective itself, over the whole travel).
 
-At every step a batch of B positions covers the travel: its two ends, where the drive's
+At every step a batch of B positions covers the travel (or a fixed set of positions, for an
+optimiser with a line search): its two ends, where the drive's
 modes are furthest from the middle's and a schedule's margins are least, and B − 2 positions
 drawn between them, stratified,
 
@@ -20,8 +21,9 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
-from jaxtyping import Array, Float, PRNGKeyArray
+from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
 from .._drive._model import BallScrewDrive
 from ._local import Descent, descend, smooth_max
@@ -46,13 +48,14 @@ class _EndToEndLoss(eqx.Module):
     static: ScheduledLoop
     objective: Objective
     drive: BallScrewDrive
+    positions: Array | None
     travel: tuple[float, float] = eqx.field(static=True)
     batch: int = eqx.field(static=True)
     sharpness: float = eqx.field(static=True)
 
-    def __call__(self, params, key):
+    def __call__(self, params, key=None):
         schedule = eqx.combine(params, self.static)
-        y = batch_positions(key, self.travel, self.batch)
+        y = self.positions if key is None else batch_positions(key, self.travel, self.batch)
         j = jax.vmap(lambda p: self.objective(schedule, self.drive, p).total)(y)
         return 0.5 * (jnp.mean(j) + smooth_max(j, self.sharpness)), jnp.max(j)
 
@@ -64,6 +67,7 @@ def train_schedule(
     *,
     steps: int = 200,
     batch: int = 8,
+    positions_m: Float[ArrayLike, " n"] | None = None,
     key: PRNGKeyArray | None = None,
     optimiser: optax.GradientTransformation | None = None,
     train_gains: bool = False,
@@ -81,6 +85,9 @@ def train_schedule(
         drive: the drive (positions are drawn over its travel).
         steps: optimiser steps; batch: positions per step (≥ 2): the travel's two ends and
             ``batch`` − 2 drawn between them.
+        positions_m: instead of drawn batches, these positions (m) at every step: the
+            objective is then deterministic, as an optimiser with a line search needs
+            (``optax.lbfgs()``), and the best step is the best schedule on them.
         key: PRNG key of the position draws (default ``PRNGKey(0)``).
         optimiser: an optax transformation (default ``optax.adam(3e-3)``).
         train_gains: also train the loop's feedback gains (k_p, k_v, k_i).
@@ -91,8 +98,9 @@ def train_schedule(
         chunk, progress: as :func:`fdjax.tune_local`.
 
     Returns:
-        The schedule of the lowest batch objective seen, and the :class:`Descent` record
-        (``history``: the batch objective per step, ``aux``: the batch's worst J).
+        The schedule of the lowest batch objective seen (with drawn batches, each step's is on
+        its own batch), and the :class:`Descent` record (``history``: the batch objective per
+        step, ``aux``: the batch's worst J).
     """
     fn = "train_schedule"
     if not isinstance(schedule, ScheduledLoop):
@@ -118,11 +126,23 @@ def train_schedule(
     if train_feedforward:
         ff = lambda s: (s.loop.k_ffv, s.loop.k_ffa)  # noqa: E731
         spec = eqx.tree_at(ff, spec, (True,) * 2)
+    if positions_m is not None:
+        fixed = np.asarray(positions_m, np.float64)
+        lo, hi = drive.travel_m
+        if fixed.ndim != 1 or fixed.size == 0 or not np.all((fixed >= lo) & (fixed <= hi)):
+            raise ValueError(f"`{fn}(positions_m=...)` must be a non-empty 1-D array inside "
+                             f"the travel [{lo:.6g}, {hi:.6g}] m, got {fixed.tolist()}")
+        fixed = jnp.asarray(fixed)
+    else:
+        fixed = None
     params, static = eqx.partition(schedule, spec)
-    loss = _EndToEndLoss(static, objective, drive, tuple(float(v) for v in drive.travel_m),
-                         batch, float(sharpness))
+    loss = _EndToEndLoss(static, objective, drive, fixed,
+                         tuple(float(v) for v in drive.travel_m), batch, float(sharpness))
     opt = optax.adam(3e-3) if optimiser is None else optimiser
-    key = jax.random.PRNGKey(0) if key is None else key
+    if fixed is not None:
+        key = None
+    elif key is None:
+        key = jax.random.PRNGKey(0)
     res = descend(loss, params, opt, steps, chunk=chunk, key=key,
                   progress=fn if progress else None)
     return eqx.combine(res.best, static), res

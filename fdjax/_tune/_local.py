@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, ArrayLike, Float, Int
 
 from .._control._controllers import AbstractController
 from .._drive._model import BallScrewDrive
@@ -37,6 +37,9 @@ class LocalTuning(eqx.Module):
         history: the objective J at every step and position, (steps, n).
         terms: the objective's terms at ``best_theta`` (batched over the positions).
         seconds: wall time of the steps, compilation apart (s).
+        evaluations: evaluations of the objective with its gradient per step and position,
+            (steps, n): 1 per step for Adam, the line search's trials for L-BFGS (and the
+            start's evaluation on the first step); None where not counted.
     """
 
     positions_m: Float[Array, " n"]
@@ -45,6 +48,7 @@ class LocalTuning(eqx.Module):
     history: Float[Array, "steps n"]
     terms: ObjectiveTerms
     seconds: float = eqx.field(static=True)
+    evaluations: Int[Array, "steps n"] | None = None
 
 
 def tune_local(
@@ -78,7 +82,8 @@ def tune_local(
         positions_m: design positions (m), 1-D, inside the travel.
         start: the starting controller, or starting parameters, (p,) for every position or (n, p).
         steps: optimiser steps (≥ 1).
-        optimiser: an optax transformation (default ``optax.adam(0.02)``).
+        optimiser: an optax transformation (default ``optax.adam(0.02)``); one with a line
+            search (``optax.lbfgs()``) gets the value and the objective it needs.
         chunk: steps per compiled call (the progress line is printed between calls).
         progress: print the objective's mean and max after each chunk (to stderr).
     """
@@ -91,18 +96,19 @@ def tune_local(
         state = jax.vmap(opt.init)(theta)
     best = theta
     best_j = jnp.full(pos.size, jnp.inf)
-    history = []
+    history, evaluations = [], []
     t_steps = 0.0
     done = 0
     while done < steps:
         k = min(chunk, steps - done)
         t0 = time.perf_counter()
-        theta, state, best, best_j, hist = _run(parameterisation, objective, drive, y, theta,
-                                                state, best, best_j, opt, k)
+        theta, state, best, best_j, (hist, evals) = _run(
+            parameterisation, objective, drive, y, theta, state, best, best_j, opt, k)
         jax.block_until_ready(hist)
         if done > 0:  # the first call compiles
             t_steps += time.perf_counter() - t0
         history.append(np.asarray(hist))
+        evaluations.append(np.asarray(evals))
         done += k
         if progress:
             h = history[-1][-1]
@@ -110,7 +116,11 @@ def tune_local(
                   file=sys.stderr, flush=True)
     terms = jax.vmap(lambda th, p: objective(parameterisation.to_controller(th), drive, p))(
         best, y)
-    return LocalTuning(y, theta, best, jnp.asarray(np.concatenate(history)), terms, t_steps)
+    evaluations = np.concatenate(evaluations)
+    if optax.tree_utils.tree_get(state, "grad") is not None:
+        evaluations[0] += 1  # a line search's start: evaluated once before its first trial
+    return LocalTuning(y, theta, best, jnp.asarray(np.concatenate(history)), terms, t_steps,
+                       jnp.asarray(evaluations))
 
 
 @eqx.filter_jit
@@ -119,17 +129,37 @@ def _run(par, objective, drive, y, theta, state, best, best_j, opt, steps):
         return objective(par.to_controller(th), drive, p).total
 
     value_and_grad = jax.vmap(jax.value_and_grad(loss))
+    # an optimiser with a line search (optax.lbfgs) keeps the value and the gradient at the
+    # point it accepts: they are this step's, no second evaluation
+    stored = optax.tree_utils.tree_get(state, "grad") is not None
+    if stored:  # the first call: nothing stored yet (the optimiser starts at J = ∞)
+        def first(st):
+            j0, g0 = value_and_grad(theta, y)
+            return optax.tree_utils.tree_set(st, value=j0, grad=g0)
+
+        state = jax.lax.cond(jnp.any(jnp.isinf(optax.tree_utils.tree_get(state, "value"))),
+                             first, lambda st: st, state)
 
     def step(carry, _):
         th, st, b, bj = carry
-        j, g = value_and_grad(th, y)
+        if stored:
+            j, g = optax.tree_utils.tree_get(st, "value"), optax.tree_utils.tree_get(st, "grad")
+        else:
+            j, g = value_and_grad(th, y)
         better = j < bj
         b = jnp.where(better[:, None], th, b)
         bj = jnp.where(better, j, bj)
         with jax.numpy_dtype_promotion("standard"):
-            upd, st = jax.vmap(opt.update)(g, st, th)
+            # the value and the objective go along for optimisers with a line search
+            # (optax.lbfgs); the others ignore them
+            upd, st = jax.vmap(lambda g_, s_, t_, j_, p_: opt.update(
+                g_, s_, t_, value=j_, grad=g_, value_fn=lambda q: loss(q, p_)))(g, st, th, j, y)
             th = optax.apply_updates(th, upd)
-        return (th, st, b, bj), j
+        if stored:  # the line search's trials; the start is counted by the caller
+            n = optax.tree_utils.tree_get(st, "num_linesearch_steps").astype(jnp.int32)
+        else:  # one evaluation per step
+            n = jnp.ones_like(j, jnp.int32)
+        return (th, st, b, bj), (j, n)
 
     (theta, state, best, best_j), hist = jax.lax.scan(
         step, (theta, state, best, best_j), None, length=steps)
@@ -309,7 +339,7 @@ def _descend_chunk(loss, params, state, best, best_v, opt, keys, steps):
         b = jax.tree_util.tree_map(lambda x, y: jnp.where(better, x, y), p, b)
         bv = jnp.where(better, v, bv)
         with jax.numpy_dtype_promotion("standard"):
-            upd, st = opt.update(g, st, p)
+            upd, st = opt.update(g, st, p, value=v, grad=g, value_fn=lambda q: f(q)[0])
             p = eqx.apply_updates(p, upd)
         return (p, st, b, bv), (v, aux)
 

@@ -3,21 +3,23 @@ r"""The whole gradient synthesis of paper Sec. 4.2 and Fig. 18 on one drive, as 
 1. **Local designs**: the full double loop (gains and MCM) at 115 mm (the fixed MCM of
    Fig. 18): a simplex search (:func:`tune_simplex`) from the reference controller with k_v
    halved (stable at every position) finds the basin and the gradient (:func:`tune_local`)
-   descends it, both on the objective with wide margin penalties (w = 0.05: smooth far from
-   the requirements); the gradient then continues on the objective with sharp penalties
-   (``margin_width``, default 0.01), which takes the design up to its requirements.  Then the
-   six positions over the travel by gradient from the design at 115 mm.  Every stage from
-   here on uses the sharp objective.
-2. **Common gains**: one gain set and one MCM per design position (:func:`tune_shared_gains`),
-   what a schedule of the filters needs, from the design at 115 mm at every position.
+   descends it (Adam), both on the objective with wide margin penalties (w = 0.05: smooth
+   far from the requirements); L-BFGS (``optax.lbfgs``, a line search on every step) then
+   continues on the objective with sharp penalties (``margin_width``, default 0.01), which
+   takes the design up to its requirements.  Then the six positions over the travel by
+   L-BFGS from the design at 115 mm.  Every stage from here on uses the sharp objective.
+2. **Common gains**: one gain set and one MCM per design position (:func:`tune_shared_gains`,
+   L-BFGS), what a schedule of the filters needs, from the design at 115 mm at every
+   position.
 3. **Baselines**: a PID tuned at 115 mm by the same three stages, the robust PID
    (:func:`tune_robust` over 13 positions, from the reference PID and from the PID tuned at
-   115 mm with wide penalties, the better of the two continued with sharp ones), the MCM
+   115 mm with wide penalties, the better of the two continued by L-BFGS with sharp ones),
+   the MCM
    tuned at 115 mm held fixed, the six MCMs interpolated linearly in their normalised
    parameters (:class:`InterpolatedLoop`).
 4. **The ATA network** fitted to the six MCMs by backpropagation (:func:`fit_network`), then
    **trained end to end** against the objective over the travel, with the loop's common gains
-   (:func:`train_schedule`).
+   (:func:`train_schedule`, L-BFGS on a grid of positions over the travel).
 5. **Evaluation**: RMS error, stability and the exact sampled margins of every controller on a
    grid of positions (:func:`evaluate`, :func:`certify`).
 """
@@ -46,6 +48,7 @@ from .._control._servo import Servo
 from .._drive._model import BallScrewDrive
 from .._drive._reference import reference_drive
 from .._drive._twin import TwinOptions
+from .._memory import release
 from .._trajectory import Trajectory, reciprocating
 from ._certify import certificate, default_grid, fixed_controllers, point_checks
 from ._end_to_end import train_schedule
@@ -165,7 +168,9 @@ def _join(a: LocalTuning, b: LocalTuning) -> LocalTuning:
     return LocalTuning(cat(a.positions_m, b.positions_m), cat(a.theta, b.theta),
                        cat(a.best_theta, b.best_theta),
                        jnp.concatenate([a.history, b.history], axis=1),
-                       jax.tree_util.tree_map(cat, a.terms, b.terms), a.seconds + b.seconds)
+                       jax.tree_util.tree_map(cat, a.terms, b.terms), a.seconds + b.seconds,
+                       None if a.evaluations is None or b.evaluations is None
+                       else jnp.concatenate([a.evaluations, b.evaluations], axis=1))
 
 
 def _say(progress, text):
@@ -178,11 +183,12 @@ def synthesise(
     *,
     servo: Servo | None = None,
     local_steps: int = 300,
-    shared_steps: int = 200,
+    refine_steps: int = 100,
+    shared_steps: int = 100,
     pid_steps: int = 300,
     network_steps: int = 4000,
-    e2e_steps: int = 200,
-    e2e_batch: int = 8,
+    e2e_steps: int = 60,
+    e2e_positions: int = 13,
     simplex_evaluations: int = 3000,
     train_gains: bool = True,
     feedforward: bool = False,
@@ -196,12 +202,17 @@ def synthesise(
     has feed-forward, so the tracking error is that of the loop, which the MCM improves by
     raising the loop gains.  With feed-forward (``True``) the error on this drive is set by the
     axial compliance the rigid feed-forward leaves uncompensated, about the same for every
-    loop.  Steps are Adam with a cosine decay (:func:`tune_local`); ``simplex_evaluations``
-    evaluations of the simplex search at 115 mm (:func:`tune_simplex`) precede the gradient
-    there, for the MCM and for the PID; both, and ``local_steps`` (``pid_steps``) of the
-    gradient after them, run on the objective with wide margin penalties
-    (:func:`tuning_objective` with w = 0.05), then as many steps on the objective with
-    ``margin_width`` (the one every later stage uses)."""
+    loop.  At 115 mm, for the MCM and for the PID, ``simplex_evaluations`` evaluations of the
+    simplex search (:func:`tune_simplex`) and ``local_steps`` (``pid_steps``) Adam steps with a
+    cosine decay (:func:`tune_local`) run on the objective with wide margin penalties
+    (:func:`tuning_objective` with w = 0.05), then ``refine_steps`` L-BFGS steps on the
+    objective with ``margin_width``, the one every later stage uses: ``refine_steps`` L-BFGS
+    steps for the six local designs, the robust PID's sharp stage (after ``pid_steps`` Adam
+    steps with wide penalties), ``shared_steps`` for the common gains; ``e2e_steps`` L-BFGS
+    steps end to end, on ``e2e_positions`` positions evenly over the travel (every 50 mm by
+    default, most of them between the six design positions).  Between stages the compiled
+    programs are released when the process holds many memory maps (each program maps its
+    machine code; a process may hold 65530)."""
     drive = reference_drive() if drive is None else drive
     if not isinstance(drive, BallScrewDrive):
         raise TypeError(f"`synthesise(drive=...)` must be an fdjax.BallScrewDrive, got "
@@ -224,31 +235,36 @@ def synthesise(
     t0 = time.perf_counter()
     _say(progress, f"MCM at {FIXED_POSITION_M * 1e3:.0f} mm: simplex search, then gradient")
     search, coarse, at_115 = _at_115(par, wide, obj, drive, start, simplex_evaluations,
-                                     local_steps, progress)
+                                     local_steps, refine_steps, progress)
+    release()
     # the six local designs start from the design at 115 mm, as a servo engineer would
     _say(progress, f"local designs at {', '.join(f'{y * 1e3:.0f}' for y in design)} mm")
-    six = tune_local(par, obj, drive, design, at_115.best_theta[0], steps=local_steps,
-                     optimiser=_adam(local_steps, 0.02), progress=progress)
+    six = tune_local(par, obj, drive, design, at_115.best_theta[0], steps=refine_steps,
+                     optimiser=optax.lbfgs(), chunk=10, progress=progress)
     local = _join(at_115, six)
     seconds["local"] = time.perf_counter() - t0
 
+    release()  # compiled programs of the stage before: memory maps
     t0 = time.perf_counter()
     _say(progress, "six MCMs with common gains")
     # common gains and one MCM per position, from the design at 115 mm everywhere (stable
     # with the margins over the travel on the reference drive), so that the schedule starts
     # where the fixed MCM is and descends from there
     shared = tune_shared_gains(par, obj, drive, design, at_115.best_theta[0],
-                               steps=shared_steps, optimiser=_adam(shared_steps, 0.02),
+                               steps=shared_steps, optimiser=optax.lbfgs(), chunk=10,
                                progress=progress)
     seconds["shared"] = time.perf_counter() - t0
 
+    release()  # compiled programs of the stage before: memory maps
     t0 = time.perf_counter()
     k_ffv, k_ffa = rigid_feedforward(drive, servo) if feedforward else (1.0, 1.0)
     pid0 = reference_pid(k_ffv=k_ffv, k_ffa=k_ffa)
     ppar = PIDParameterisation(pid0, servo=servo, feedforward=feedforward)
     _say(progress, "PID at 115 mm: simplex search, then gradient")
     pid_search, pid_coarse, pid_115 = _at_115(ppar, wide, obj, drive, pid0,
-                                              simplex_evaluations, pid_steps, progress)
+                                              simplex_evaluations, pid_steps, refine_steps,
+                                              progress)
+    release()
     _say(progress, "robust PID over 13 positions, from the reference PID and from the PID "
                    "tuned at 115 mm")
     robust_y = np.linspace(0.1, 0.7, 13)
@@ -258,10 +274,11 @@ def synthesise(
     robust_coarse = min(robust, key=lambda r: float(jnp.min(r.history)))
     _say(progress, "robust PID: sharp margin penalties")
     pid_robust = tune_robust(ppar, obj, drive, robust_y, robust_coarse.best_theta,
-                             steps=pid_steps, optimiser=_adam(pid_steps, 0.02),
+                             steps=refine_steps, optimiser=optax.lbfgs(), chunk=10,
                              progress=progress)
     seconds["pid"] = time.perf_counter() - t0
 
+    release()  # compiled programs of the stage before: memory maps
     t0 = time.perf_counter()
     loop = par.to_controller(shared.best_theta[0])
     targets = shared.best_theta[:, 5:]
@@ -271,12 +288,16 @@ def synthesise(
     seconds["network"] = time.perf_counter() - t0
     _say(progress, f"ATA network fitted by backpropagation: loss {float(loss[-1]):.3g}")
 
+    release()  # compiled programs of the stage before: memory maps
     t0 = time.perf_counter()
     _say(progress, "ATA network trained end to end")
+    # a fixed grid over the travel (every 50 mm by default: most between the design points)
+    # makes the objective deterministic, for L-BFGS
+    e2e_y = np.linspace(*drive.travel_m, e2e_positions)
     schedule_e2e, e2e = train_schedule(schedule_bp, obj, drive, steps=e2e_steps,
-                                       batch=e2e_batch, train_gains=train_gains,
+                                       positions_m=e2e_y, train_gains=train_gains,
                                        train_feedforward=feedforward,
-                                       optimiser=_adam(e2e_steps, 3e-3), progress=progress)
+                                       optimiser=optax.lbfgs(), chunk=10, progress=progress)
     seconds["end_to_end"] = time.perf_counter() - t0
 
     controllers = {
@@ -293,17 +314,17 @@ def synthesise(
                      {"mcm": coarse, "pid": pid_coarse, "pid_robust": robust_coarse})
 
 
-def _at_115(par, wide, sharp, drive, start, evaluations, steps, progress):
-    """The design at 115 mm: simplex and gradient on the wide-penalty objective, then the
-    gradient on the sharp one."""
+def _at_115(par, wide, sharp, drive, start, evaluations, steps, refine, progress):
+    """The design at 115 mm: simplex and Adam on the wide-penalty objective, then L-BFGS on
+    the sharp one."""
     y = [FIXED_POSITION_M]
     search = tune_simplex(par, wide, drive, y, start, evaluations=evaluations,
                           progress=progress)
     coarse = tune_local(par, wide, drive, y, search.best_theta[0], steps=steps,
                         optimiser=_adam(steps, 0.02), progress=progress)
     _say(progress, "sharp margin penalties")
-    fine = tune_local(par, sharp, drive, y, coarse.best_theta[0], steps=steps,
-                      optimiser=_adam(steps, 0.02), progress=progress)
+    fine = tune_local(par, sharp, drive, y, coarse.best_theta[0], steps=refine,
+                      optimiser=optax.lbfgs(), chunk=10, progress=progress)
     return search, coarse, fine
 
 
@@ -324,6 +345,7 @@ def evaluate(
     servo = reference_servo() if servo is None else servo
     motion = tuning_motion() if motion is None else motion
     y = np.asarray(drive._check_travel(np.asarray(positions_m, float), "evaluate"))
+    release()
     twin = TwinOptions().resolve(drive, "evaluate")
     f = default_grid(servo)
     groups: dict = {}
