@@ -164,7 +164,8 @@ def test_end_to_end_on_fixed_positions_by_lbfgs():
         jnp.asarray(y)))
     expected = 0.5 * (j.mean() + float(fdjax.smooth_max(jnp.asarray(j), 2.0)))
     h = np.asarray(rec.history)
-    np.testing.assert_allclose(h[0], expected, rtol=1e-12)
+    # the same J in two compiled programs: equal to round-off (measured 1.7e-11 relative)
+    np.testing.assert_allclose(h[0], expected, rtol=1e-10)
     assert h.min() < 0.9 * h[0], h
 
 
