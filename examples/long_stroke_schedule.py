@@ -15,9 +15,10 @@ schedule's filters change during the motion as the drive's modes do.  The script
    every 1 mm).
 
 On the reference drive without feed-forward the long stroke's error is the position loop's
-lag at 0.3 m/s (0.95 mm RMS), which the filters hardly touch: measured, the largest
-derivative in a network weight is 0.115 µm per unit weight, in ln k_v 0.217 µm, and three
-Adam steps of 3e-3 on the network move the error by 0.01 µm.
+lag at 0.3 m/s (0.67–0.86 mm RMS for the shipped designs), which the filters hardly touch:
+measured, the largest derivative in a network weight is 0.107 µm per unit weight, in ln k_v
+0.23 µm, and three Adam steps of 3e-3 on the network move the error by 0.01 µm (the third
+step's network diverges; the best step is kept).
 
 Usage:  python examples/long_stroke_schedule.py [--steps 20] [--certify]
 """
