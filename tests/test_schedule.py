@@ -105,11 +105,9 @@ def test_filter_table_is_the_schedule_in_drive_units():
     json.dumps(table)  # plain floats
 
 
-def test_end_to_end_training_lowers_the_objective_and_keeps_feedback_only():
-    """A schedule fitted to the reference MCM everywhere, trained end to end 8 steps with its
-    feedback gains: the objective falls at every position checked, the gains and the network
-    move, the feed-forward gains stay zero (a feedback schedule is compared with feedback
-    designs) and the result is stable at the positions checked."""
+def _feedback_schedule():
+    """The reference drive and a schedule fitted to the reference MCM everywhere, its k_v
+    halved (stable over the travel) and no feed-forward."""
     drive = fdjax.reference_drive()
     ref = fdjax.reference_controller(drive)
     soft = eqx.tree_at(lambda c: (c.log_kv, c.k_ffv, c.k_ffa), ref,
@@ -117,7 +115,15 @@ def test_end_to_end_training_lowers_the_objective_and_keeps_feedback_only():
     target = np.tile(np.asarray(BOUNDS.from_mcm(ref.mcm)), (6, 1))
     net, _ = fdjax.fit_network(fdjax.ATANetwork((0.1, 0.7), width=4, key=jax.random.PRNGKey(5)),
                                POSITIONS, target, steps=1500)
-    start = fdjax.ScheduledLoop(soft, net, BOUNDS)
+    return drive, fdjax.ScheduledLoop(soft, net, BOUNDS)
+
+
+def test_end_to_end_training_lowers_the_objective_and_keeps_feedback_only():
+    """A schedule fitted to the reference MCM everywhere, trained end to end 8 steps with its
+    feedback gains: the objective falls at every position checked, the gains and the network
+    move, the feed-forward gains stay zero (a feedback schedule is compared with feedback
+    designs) and the result is stable at the positions checked."""
+    drive, start = _feedback_schedule()
     motion = fdjax.reciprocating(stroke=1e-3, v_max=0.05, a_max=2.0, j_max=400.0, cycles=1)
     obj = fdjax.Objective(motion, np.geomspace(5.0, 3900.0, 200),
                           twin=fdjax.TwinOptions(kept_modes=6), error_scale_m=1e-4)
@@ -143,14 +149,7 @@ def test_end_to_end_on_fixed_positions_by_lbfgs():
     """On fixed positions the objective is deterministic and L-BFGS trains the schedule: the
     first value of the history is ½(mean + smax) of J at those positions, computed here
     independently, and the best value is lower; positions outside the travel are refused."""
-    drive = fdjax.reference_drive()
-    ref = fdjax.reference_controller(drive)
-    soft = eqx.tree_at(lambda c: (c.log_kv, c.k_ffv, c.k_ffa), ref,
-                       (ref.log_kv + np.log(0.5), jnp.asarray(0.0), jnp.asarray(0.0)))
-    target = np.tile(np.asarray(BOUNDS.from_mcm(ref.mcm)), (6, 1))
-    net, _ = fdjax.fit_network(fdjax.ATANetwork((0.1, 0.7), width=4, key=jax.random.PRNGKey(5)),
-                               POSITIONS, target, steps=1500)
-    start = fdjax.ScheduledLoop(soft, net, BOUNDS)
+    drive, start = _feedback_schedule()
     motion = fdjax.reciprocating(stroke=1e-3, v_max=0.05, a_max=2.0, j_max=400.0, cycles=1)
     obj = fdjax.Objective(motion, np.geomspace(5.0, 3900.0, 200),
                           twin=fdjax.TwinOptions(kept_modes=4), error_scale_m=1e-4)
