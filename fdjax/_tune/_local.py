@@ -93,9 +93,9 @@ def tune_local(
     opt = optax.adam(0.02) if optimiser is None else optimiser
     y = jnp.asarray(pos)
     with jax.numpy_dtype_promotion("standard"):
-        state = jax.vmap(opt.init)(theta)
+        state = _settled(jax.vmap(opt.init)(theta))
     best = theta
-    best_j = jnp.full(pos.size, jnp.inf)
+    best_j = _settled(jnp.full(pos.size, jnp.inf))
     history, evaluations = [], []
     t_steps = 0.0
     done = 0
@@ -121,6 +121,15 @@ def tune_local(
         evaluations[0] += 1  # a line search's start: evaluated once before its first trial
     return LocalTuning(y, theta, best, jnp.asarray(np.concatenate(history)), terms, t_steps,
                        jnp.asarray(evaluations))
+
+
+def _settled(tree):
+    """``tree`` with the types a compiled step returns: no weak types.  An optimiser's initial
+    state holds weak-typed scalars (optax.lbfgs's line-search counters) that its updated state
+    does not, and a chunk would compile once for the first call and again for the next."""
+    return jax.tree_util.tree_map(
+        lambda x: jnp.asarray(x, x.dtype) if isinstance(x, jax.Array) and x.weak_type else x,
+        tree)
 
 
 @eqx.filter_jit
@@ -290,13 +299,16 @@ def tune_robust(
 
 class Descent(eqx.Module):
     """Result of :func:`descend`: final and best parameters, the loss and its auxiliary value
-    at every step, wall time of the steps after the first (compiling) chunk."""
+    at every step, wall time of the steps after the first (compiling) chunk, and the
+    evaluations of the loss with its gradient at every step (1, plus the line search's trials
+    for an optimiser with one, e.g. ``optax.lbfgs()``)."""
 
     params: object
     best: object
     history: Float[Array, " steps"]
     aux: Array
     seconds: float = eqx.field(static=True)
+    evaluations: Int[Array, " steps"] | None = None
 
 
 def descend(loss, params, optimiser, steps: int, *, chunk: int = 25, key=None,
@@ -307,26 +319,28 @@ def descend(loss, params, optimiser, steps: int, *, chunk: int = 25, key=None,
     a ``lax.scan`` of ``chunk`` steps per compiled call; with ``progress`` (a name) a line per
     chunk goes to stderr.  Keeps the parameters of the lowest value seen."""
     with jax.numpy_dtype_promotion("standard"):
-        state = optimiser.init(params)
-    best, best_v = params, jnp.asarray(jnp.inf)
-    hist, auxs, t_steps, done = [], [], 0.0, 0
+        state = _settled(optimiser.init(params))
+    best, best_v = params, _settled(jnp.asarray(jnp.inf))
+    hist, auxs, evals, t_steps, done = [], [], [], 0.0, 0
     while done < steps:
         k = min(chunk, steps - done)
         keys = None if key is None else jax.random.split(jax.random.fold_in(key, done), k)
         t0 = time.perf_counter()
-        params, state, best, best_v, (v, aux) = _descend_chunk(loss, params, state, best,
-                                                               best_v, optimiser, keys, k)
+        params, state, best, best_v, (v, aux, n) = _descend_chunk(
+            loss, params, state, best, best_v, optimiser, keys, k)
         jax.block_until_ready(v)
         if done > 0:
             t_steps += time.perf_counter() - t0
         hist.append(np.asarray(v))
         auxs.append(np.asarray(aux))
+        evals.append(np.asarray(n))
         done += k
         if progress:
             print(f"{progress}: step {done}/{steps}, objective {float(v[-1]):.4g} "
                   f"(best {float(best_v):.4g})", file=sys.stderr, flush=True)
     return Descent(params, best, jnp.asarray(np.concatenate(hist)),
-                   jnp.asarray(np.concatenate(auxs)), t_steps)
+                   jnp.asarray(np.concatenate(auxs)), t_steps,
+                   jnp.asarray(np.concatenate(evals)))
 
 
 @eqx.filter_jit
@@ -341,7 +355,10 @@ def _descend_chunk(loss, params, state, best, best_v, opt, keys, steps):
         with jax.numpy_dtype_promotion("standard"):
             upd, st = opt.update(g, st, p, value=v, grad=g, value_fn=lambda q: f(q)[0])
             p = eqx.apply_updates(p, upd)
-        return (p, st, b, bv), (v, aux)
+        # this step's evaluation, and a line search's trials (optax.lbfgs)
+        trials = optax.tree_utils.tree_get(st, "num_linesearch_steps")
+        n = jnp.asarray(1, jnp.int32) + (0 if trials is None else trials.astype(jnp.int32))
+        return (p, st, b, bv), (v, aux, n)
 
     (params, state, best, best_v), out = jax.lax.scan(
         step, (params, state, best, best_v), keys, length=steps)

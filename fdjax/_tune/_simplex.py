@@ -27,7 +27,7 @@ import numpy as np
 from jaxtyping import ArrayLike, Float
 
 from .._drive._model import BallScrewDrive
-from ._local import LocalTuning, _check_common, _start
+from ._local import LocalTuning, _check_common, _settled, _start
 from ._objective import Objective
 from ._parameterisation import AbstractParameterisation
 
@@ -173,7 +173,7 @@ def tune_simplex(
                          f"simplex, got {evaluations}")
     if not (isinstance(step, (int, float)) and step > 0):
         raise ValueError(f"`{fn}(step=...)` must be a positive number, got {step!r}")
-    state = jax.vmap(lambda x: _init(x, float(step)))(theta)
+    state = _settled(jax.vmap(lambda x: _init(x, float(step)))(theta))
     y = jnp.asarray(pos)
     history, done, t_steps = [], 0, 0.0
     while done < evaluations:
