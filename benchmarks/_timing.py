@@ -29,6 +29,23 @@ def loadavg():
         return None
 
 
+def jsonable(x):
+    """``x`` with numpy arrays and scalars as lists and numbers, non-finite floats as strings."""
+    import math
+
+    if isinstance(x, dict):
+        return {k: jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    if isinstance(x, (np.floating, np.integer, np.bool_)):
+        return x.item()
+    if isinstance(x, float) and not math.isfinite(x):
+        return str(x)
+    return x
+
+
 def write_results(out, result, markdown):
     """Write ``result`` to the JSON file ``out`` and ``markdown`` beside it (``.md``); print
     the markdown."""

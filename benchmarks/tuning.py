@@ -12,7 +12,8 @@ j_max=400.0, cycles=1)``, margins on 400 log-spaced frequencies 5–3900 Hz, twi
    of 25 steps): Adam 0.02 (``--steps`` steps) and L-BFGS (``optax.lbfgs``, zoom line search,
    ``--lbfgs-steps`` steps; each line-search trial is an evaluation of J and its gradient).
    Compilation is timed separately (a warm-up call of one chunk; the main call then reuses
-   the compiled chunk), the time per step from the main call.
+   the compiled chunk); the time per step is the main call's average (its wall time less the
+   final evaluation of the terms).
 2. ``derivative_free``: ``scipy.optimize.minimize(method="Nelder-Mead", adaptive=True)`` on θ
    per position, one position after the other, J a jitted function of (θ, Y) (compiled once,
    outside the timing), initial simplex θ0 + 0.1·e_k, at most ``--maxfev`` evaluations.
@@ -48,6 +49,7 @@ import optax
 import scipy
 import scipy.optimize
 from _timing import (  # benchmarks/ is on sys.path when run as a script
+    jsonable,
     loadavg,
     median_time,
     write_results,
@@ -96,11 +98,14 @@ def gradient_local(par, obj, drive, positions, start, steps, method="adam"):
                          chunk=CHUNK)
     jax.block_until_ready((r.history, r.terms.total))
     wall_s = time.perf_counter() - t0  # every step compiled, plus the final terms
-    # r.seconds leaves out the first chunk (compiled already here, but tune_local cannot know)
-    timed_steps = steps - min(CHUNK, steps)
-    per_step = r.seconds / timed_steps if timed_steps > 0 else wall_s / steps
-    steps_s = per_step * steps
-    terms_s = max(wall_s - steps_s, 0.0)
+    # the final terms: one vmapped evaluation of J at the best θ (compiled in the warm-up)
+    terms_s, _ = median_time(lambda: jax.vmap(
+        lambda th, p: obj(par.to_controller(th), drive, p).total)(r.best_theta, r.positions_m),
+        3, warmup=False)
+    steps_s = max(wall_s - terms_s, 0.0)
+    # the average: a line search's steps are not all alike (more trials late on), so the time
+    # per step is the main call's, not a chunk's
+    per_step = steps_s / steps
     compile_s = max(warm_s - warm_steps * per_step - terms_s, 0.0)
     h = np.asarray(r.history)
     return {
@@ -395,20 +400,6 @@ def _method_markdown(method, m, n_pos):
         lines.append(f"| {v['position_m']:.2f} m | {v['stable']} | "
                      f"{v['growth_rate_per_s']:.3g} | {v['gain_headroom_db']:.1f} dB |")
     return lines
-
-
-def jsonable(x):
-    if isinstance(x, dict):
-        return {k: jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    if isinstance(x, (np.floating, np.integer, np.bool_)):
-        return x.item()
-    if isinstance(x, float) and not math.isfinite(x):
-        return str(x)
-    return x
 
 
 def main():
