@@ -29,6 +29,35 @@ def loadavg():
         return None
 
 
+def nelder_mead(fun, x0, simplex, maxfev):
+    """scipy's adaptive Nelder-Mead on ``fun`` (x ↦ a scalar, e.g. a jitted objective), with
+    every value and its time recorded: (result, values, seconds since the start, non-finite
+    values, total seconds).  A non-finite value counts as 1e30."""
+    import math
+
+    import scipy.optimize
+
+    trace, stamps, bad = [], [], 0
+
+    def f(x):
+        nonlocal bad
+        v = float(fun(x))
+        if not math.isfinite(v):
+            bad += 1
+            v = 1e30
+        trace.append(v)
+        stamps.append(time.perf_counter())
+        return v
+
+    t0 = time.perf_counter()
+    res = scipy.optimize.minimize(f, x0, method="Nelder-Mead",
+                                  options={"maxfev": maxfev, "adaptive": True,
+                                           "initial_simplex": simplex, "xatol": 1e-8,
+                                           "fatol": 1e-10})
+    total = time.perf_counter() - t0
+    return res, np.asarray(trace), np.asarray(stamps) - t0, bad, total
+
+
 def jsonable(x):
     """``x`` with numpy arrays and scalars as lists and numbers, non-finite floats as strings."""
     import math

@@ -30,7 +30,6 @@ Usage:  python benchmarks/end_to_end.py [--steps 40] [--maxfev 2000] [--position
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import platform
 import time
@@ -42,7 +41,13 @@ import numpy as np
 import optax
 import scipy
 import scipy.optimize
-from _timing import jsonable, loadavg, median_time, write_results  # benchmarks/ on sys.path
+from _timing import (  # benchmarks/ on sys.path
+    jsonable,
+    loadavg,
+    median_time,
+    nelder_mead,
+    write_results,
+)
 from jax.flatten_util import ravel_pytree
 
 import fdjax
@@ -111,33 +116,16 @@ def derivative_free(schedule, obj, drive, y, maxfev):
     compile_s = time.perf_counter() - t0
     t_eval, _ = median_time(lambda: loss(flat0), 5)
     x0 = np.asarray(flat0, np.float64)
-    trace, stamps, bad = [], [], 0
-
-    def f(x):
-        nonlocal bad
-        v = float(loss(jnp.asarray(x)))
-        if not math.isfinite(v):
-            bad += 1
-            v = 1e30
-        trace.append(v)
-        stamps.append(time.perf_counter())
-        return v
-
     simplex = np.vstack([x0, x0 + SIMPLEX_STEP * np.eye(x0.size)])
-    t0 = time.perf_counter()
-    res = scipy.optimize.minimize(f, x0, method="Nelder-Mead",
-                                  options={"maxfev": maxfev, "adaptive": True,
-                                           "initial_simplex": simplex, "xatol": 1e-8,
-                                           "fatol": 1e-10})
-    total_s = time.perf_counter() - t0
-    tr = np.asarray(trace)
+    res, tr, stamps, bad, total_s = nelder_mead(lambda x: loss(jnp.asarray(x)), x0, simplex,
+                                                maxfev)
     return {"n_parameters": int(x0.size), "compile_s": compile_s,
             "seconds_per_eval_median": t_eval, "simplex_step": SIMPLEX_STEP,
             "maxfev": int(maxfev), "evals": int(tr.size), "seconds": total_s,
             "j_start": float(tr[0]), "j_best": float(tr.min()),
             "evals_to_best": int(np.argmin(tr)) + 1, "non_finite_evals": bad,
             "message": str(res.message), "trace": tr,
-            "trace_seconds": np.asarray(stamps) - t0}
+            "trace_seconds": stamps}
 
 
 def reach(grad, nm, n_positions, target):
