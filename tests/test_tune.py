@@ -1,5 +1,6 @@
 """The parameterisation of gradient synthesis: every θ gives an admissible controller."""
 
+import contextlib
 import dataclasses
 import math
 
@@ -14,6 +15,22 @@ import fdjax
 
 T = 1.25e-4
 BOUNDS = fdjax.MCMBounds.for_servo(fdjax.Servo())
+
+
+@contextlib.contextmanager
+def compilations():
+    """The names of the functions XLA compiles inside the block (JAX's compilation events)."""
+    names = []
+
+    def listen(event, seconds, fun_name=None, **_):
+        if event == "/jax/core/compile/backend_compile_duration":
+            names.append(str(fun_name))  # e.g. "jit(_run)"
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        yield names
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
 
 
 def _physical(mcm):
@@ -294,7 +311,8 @@ def test_local_tuning_by_lbfgs_keeps_the_positions_apart():
     objective falls at every position, and each position's run depends on its own objective
     only: 300 mm paired with 115 mm and paired with 200 mm runs the same steps (equal to
     round-off, measured 0 difference; a line search shared by the pair would step each by the
-    pair's step length).  Both runs have the same shapes: one compilation."""
+    pair's step length).  Both runs have the same shapes and the same optimiser object: the
+    second compiles nothing (counted by JAX's compilation events)."""
     import optax
 
     drive = fdjax.reference_drive()
@@ -303,8 +321,13 @@ def test_local_tuning_by_lbfgs_keeps_the_positions_apart():
     ref = fdjax.reciprocating(stroke=1e-3, v_max=0.05, a_max=2.0, j_max=400.0, cycles=1)
     obj = fdjax.Objective(ref, np.geomspace(5.0, 3900.0, 64),
                           twin=fdjax.TwinOptions(kept_modes=4))
-    runs = [fdjax.tune_local(par, obj, drive, np.array([y, 0.3]), start, steps=4, chunk=4,
-                             optimiser=optax.lbfgs()) for y in (0.115, 0.2)]
+    opt = optax.lbfgs()  # one object: its compiled steps are reused
+    runs = []
+    for y in (0.115, 0.2):
+        with compilations() as names:
+            runs.append(fdjax.tune_local(par, obj, drive, np.array([y, 0.3]), start, steps=4,
+                                         chunk=4, optimiser=opt))
+        assert ("jit(_run)" in names) == (y == 0.115), names  # the steps: compiled by the first
     for r in runs:
         h = np.asarray(r.history)
         assert np.all(np.asarray(r.terms.total) < 0.5 * h[0]), (h[0], r.terms.total)
@@ -427,3 +450,19 @@ def test_descend_compiles_once_for_every_chunk():
             fdjax.descend(Rosenbrock(), jnp.array([-1.2, 1.0]), make(), steps, chunk=5)
             counts.append(len(traces))
         assert counts[0] == counts[1] > 0, counts  # weak-typed starts: [1, 2] and [3, 6]
+
+
+def test_default_optimisers_compile_once():
+    """The tuners' default optimisers are one object each (an optax transformation compares
+    by identity, and a compiled step is keyed on it): a second call with new values compiles
+    nothing."""
+    from fdjax._tune._optimisers import default_optimiser
+
+    assert default_optimiser("adam", 0.02) is default_optimiser("adam", 0.02)
+    y = np.linspace(0.1, 0.7, 6)
+    targets = np.tile(np.linspace(-1.0, 1.0, 7), (6, 1))
+    net = fdjax.ATANetwork((0.1, 0.7), width=4, key=jax.random.PRNGKey(1))
+    for k, shift in enumerate((0.0, 0.3)):
+        with compilations() as names:
+            fdjax.fit_network(net, y, targets + shift, steps=20)
+        assert ("jit(_fit)" in names) == (k == 0), names

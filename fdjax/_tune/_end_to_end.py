@@ -28,6 +28,7 @@ from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 from .._drive._model import BallScrewDrive
 from ._local import Descent, descend, smooth_max
 from ._objective import Objective
+from ._optimisers import default_optimiser
 from ._schedule import ScheduledLoop
 
 __all__ = ["train_schedule", "batch_positions"]
@@ -89,7 +90,8 @@ def train_schedule(
             objective is then deterministic, as an optimiser with a line search needs
             (``optax.lbfgs()``), and the best step is the best schedule on them.
         key: PRNG key of the position draws (default ``PRNGKey(0)``).
-        optimiser: an optax transformation (default ``optax.adam(3e-3)``).
+        optimiser: an optax transformation (default ``optax.adam(3e-3)``); a later call
+            with the same object and shapes reuses the compiled steps.
         train_gains: also train the loop's feedback gains (k_p, k_v, k_i).
         train_feedforward: also train its feed-forward gains (k_ffv, k_ffa); off, they keep
             their values (zero in a feedback-only loop), so that a feedback schedule is compared
@@ -138,7 +140,7 @@ def train_schedule(
     params, static = eqx.partition(schedule, spec)
     loss = _EndToEndLoss(static, objective, drive, fixed,
                          tuple(float(v) for v in drive.travel_m), batch, float(sharpness))
-    opt = optax.adam(3e-3) if optimiser is None else optimiser
+    opt = default_optimiser("adam", 3e-3) if optimiser is None else optimiser
     if fixed is not None:
         key = None
     elif key is None:

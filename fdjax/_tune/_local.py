@@ -21,6 +21,7 @@ from jaxtyping import Array, ArrayLike, Float, Int
 from .._control._controllers import AbstractController
 from .._drive._model import BallScrewDrive
 from ._objective import Objective, ObjectiveTerms
+from ._optimisers import default_optimiser
 from ._parameterisation import AbstractParameterisation
 
 __all__ = ["LocalTuning", "RobustTuning", "tune_local", "tune_robust", "tune_shared_gains",
@@ -83,14 +84,16 @@ def tune_local(
         start: the starting controller, or starting parameters, (p,) for every position or (n, p).
         steps: optimiser steps (≥ 1).
         optimiser: an optax transformation (default ``optax.adam(0.02)``); one with a line
-            search (``optax.lbfgs()``) gets the value and the objective it needs.
+            search (``optax.lbfgs()``) gets the value and the objective it needs.  The
+            compiled steps are reused by a later call with the same optimiser object (and
+            the same shapes): make it once, e.g. ``opt = optax.lbfgs()``.
         chunk: steps per compiled call (the progress line is printed between calls).
         progress: print the objective's mean and max after each chunk (to stderr).
     """
     fn = "tune_local"
     pos = _check_common(fn, parameterisation, objective, drive, positions_m, steps, chunk)
     theta = _start(fn, parameterisation, start, pos.size)
-    opt = optax.adam(0.02) if optimiser is None else optimiser
+    opt = default_optimiser("adam", 0.02) if optimiser is None else optimiser
     y = jnp.asarray(pos)
     with jax.numpy_dtype_promotion("standard"):
         state = _settled(jax.vmap(opt.init)(theta))
@@ -289,7 +292,7 @@ def tune_robust(
         raise ValueError(f"`{fn}(start=...)` must be a controller of the parameterisation or "
                          f"have shape ({len(parameterisation.names)},), got {theta.shape}")
     loss = _RobustLoss(parameterisation, objective, drive, jnp.asarray(pos), float(sharpness))
-    opt = optax.adam(0.02) if optimiser is None else optimiser
+    opt = default_optimiser("adam", 0.02) if optimiser is None else optimiser
     res = descend(loss, theta, opt, steps, chunk=chunk, progress=fn if progress else None)
     y = jnp.asarray(pos)
     c = parameterisation.to_controller(res.best)
@@ -417,7 +420,7 @@ def tune_shared_gains(
     params = (jnp.mean(theta[:, :n_shared], axis=0), theta[:, n_shared:])
     loss = _SharedGainsLoss(parameterisation, objective, drive, jnp.asarray(pos), n_shared,
                             float(sharpness))
-    opt = optax.adam(0.02) if optimiser is None else optimiser
+    opt = default_optimiser("adam", 0.02) if optimiser is None else optimiser
     res = descend(loss, params, opt, steps, chunk=chunk, progress=fn if progress else None)
 
     def rows(p):

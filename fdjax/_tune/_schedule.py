@@ -28,6 +28,7 @@ from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
 from .._control._controllers import AbstractController, DoubleLoop, Law
 from .._filters import MCM
+from ._optimisers import default_optimiser
 from ._parameterisation import MCM_PARAMETERS, MCMBounds
 
 __all__ = ["ATANetwork", "ScheduledLoop", "InterpolatedLoop", "fit_network", "save_schedule",
@@ -224,7 +225,7 @@ def fit_network(
         )
     if not (isinstance(steps, int) and steps >= 1):
         raise ValueError(f"`fit_network(steps=...)` must be a positive int, got {steps!r}")
-    opt = optax.adam(1e-2) if optimiser is None else optimiser
+    opt = default_optimiser("adam", 1e-2) if optimiser is None else optimiser
     return _fit(network, y, t, steps, opt)
 
 

@@ -54,6 +54,7 @@ from ._certify import certificate, default_grid, fixed_controllers, point_checks
 from ._end_to_end import train_schedule
 from ._local import Descent, LocalTuning, RobustTuning, tune_local, tune_robust, tune_shared_gains
 from ._objective import Objective
+from ._optimisers import default_optimiser
 from ._parameterisation import DoubleLoopParameterisation, MCMBounds, PIDParameterisation
 from ._schedule import ATANetwork, InterpolatedLoop, ScheduledLoop, fit_network
 from ._simplex import tune_simplex
@@ -240,7 +241,7 @@ def synthesise(
     # the six local designs start from the design at 115 mm, as a servo engineer would
     _say(progress, f"local designs at {', '.join(f'{y * 1e3:.0f}' for y in design)} mm")
     six = tune_local(par, obj, drive, design, at_115.best_theta[0], steps=refine_steps,
-                     optimiser=optax.lbfgs(), chunk=10, progress=progress)
+                     optimiser=default_optimiser("lbfgs"), chunk=10, progress=progress)
     local = _join(at_115, six)
     seconds["local"] = time.perf_counter() - t0
 
@@ -251,7 +252,7 @@ def synthesise(
     # with the margins over the travel on the reference drive), so that the schedule starts
     # where the fixed MCM is and descends from there
     shared = tune_shared_gains(par, obj, drive, design, at_115.best_theta[0],
-                               steps=shared_steps, optimiser=optax.lbfgs(), chunk=10,
+                               steps=shared_steps, optimiser=default_optimiser("lbfgs"), chunk=10,
                                progress=progress)
     seconds["shared"] = time.perf_counter() - t0
 
@@ -274,7 +275,7 @@ def synthesise(
     robust_coarse = min(robust, key=lambda r: float(jnp.min(r.history)))
     _say(progress, "robust PID: sharp margin penalties")
     pid_robust = tune_robust(ppar, obj, drive, robust_y, robust_coarse.best_theta,
-                             steps=refine_steps, optimiser=optax.lbfgs(), chunk=10,
+                             steps=refine_steps, optimiser=default_optimiser("lbfgs"), chunk=10,
                              progress=progress)
     seconds["pid"] = time.perf_counter() - t0
 
@@ -297,7 +298,8 @@ def synthesise(
     schedule_e2e, e2e = train_schedule(schedule_bp, obj, drive, steps=e2e_steps,
                                        positions_m=e2e_y, train_gains=train_gains,
                                        train_feedforward=feedforward,
-                                       optimiser=optax.lbfgs(), chunk=10, progress=progress)
+                                       optimiser=default_optimiser("lbfgs"), chunk=10,
+                                       progress=progress)
     seconds["end_to_end"] = time.perf_counter() - t0
 
     controllers = {
@@ -324,7 +326,7 @@ def _at_115(par, wide, sharp, drive, start, evaluations, steps, refine, progress
                         optimiser=_adam(steps, 0.02), progress=progress)
     _say(progress, "sharp margin penalties")
     fine = tune_local(par, sharp, drive, y, coarse.best_theta[0], steps=refine,
-                      optimiser=optax.lbfgs(), chunk=10, progress=progress)
+                      optimiser=default_optimiser("lbfgs"), chunk=10, progress=progress)
     return search, coarse, fine
 
 

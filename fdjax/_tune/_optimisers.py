@@ -1,0 +1,18 @@
+"""The optimisers the tuners use by default, one object each."""
+
+from __future__ import annotations
+
+import functools
+
+import optax
+
+__all__ = ["default_optimiser"]
+
+
+@functools.cache
+def default_optimiser(name: str, *args) -> optax.GradientTransformation:
+    """One optax transformation per name and arguments (``default_optimiser("adam", 0.02)`` is
+    ``optax.adam(0.02)``), the same object at every call.  A compiled step is keyed on the
+    optimiser's functions, which compare by identity: a default made afresh at every call
+    would compile afresh; pass the same object to reuse the compiled steps."""
+    return getattr(optax, name)(*args)
