@@ -466,3 +466,40 @@ def test_default_optimisers_compile_once():
         with compilations() as names:
             fdjax.fit_network(net, y, targets + shift, steps=20)
         assert ("jit(_fit)" in names) == (k == 0), names
+
+
+def test_a_non_finite_step_is_refused_not_raised():
+    """An optimiser step that leaves finite numbers (an L-BFGS step after convergence, where a
+    curvature pair has s·y = 0) is refused: the parameters and the state stay where they
+    were, and a line search's trial at a non-finite point gets +∞ without reaching the loss
+    (whose parameterisation raises on a non-finite gain)."""
+
+    class Checked(eqx.Module):
+        def __call__(self, p):
+            p = eqx.error_if(p, ~jnp.all(jnp.isfinite(p)), "non-finite parameters")
+            v = jnp.sum((p - 1.0) ** 2)
+            return v, v
+
+    trials = []
+
+    def nan_after(k):
+        def init(p):
+            return jnp.zeros((), jnp.int32)
+
+        def update(g, count, params=None, *, value_fn=None, **_):
+            bad = count >= k
+            trial = jnp.where(bad, jnp.nan, params)  # a line search's trial point
+            v = value_fn(trial)
+            jax.debug.callback(lambda x: trials.append(float(x)), v)
+            u = jnp.where(bad, jnp.nan, -0.25 * g)
+            return u, count + 1
+
+        return optax.GradientTransformationExtraArgs(init, update)
+
+    res = fdjax.descend(Checked(), jnp.array([3.0, -1.0]), nan_after(3), 8, chunk=4)
+    h = np.asarray(res.history)
+    assert np.all(np.isfinite(h)) and np.all(np.isfinite(np.asarray(res.params)))
+    # three steps of p ← p − ½(p − 1), then refused: the parameters stay put
+    np.testing.assert_allclose(np.asarray(res.params), 1.0 + np.array([2.0, -2.0]) / 8)
+    np.testing.assert_allclose(h[3:], h[3])
+    assert trials[:3] == h[:3].tolist() and all(t == np.inf for t in trials[3:])

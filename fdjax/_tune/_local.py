@@ -126,6 +126,32 @@ def tune_local(
                        jnp.asarray(evaluations))
 
 
+def _all_finite(tree):
+    leaves = jax.tree_util.tree_leaves(eqx.filter(tree, eqx.is_inexact_array))
+    return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in leaves] + [jnp.asarray(True)]))
+
+
+def _guarded(value_fn, fallback):
+    """``value_fn`` for an optimiser's line search: +∞ at a non-finite trial point, which is
+    never handed to the parameterisation (it raises on a non-finite gain); evaluated at
+    ``fallback`` instead, so that the value and its gradient stay finite."""
+    def fn(q):
+        ok = _all_finite(q)
+        safe = jax.tree_util.tree_map(lambda a, b: jnp.where(ok, a, b), q, fallback)
+        return jnp.where(ok, value_fn(safe), jnp.inf)
+
+    return fn
+
+
+def _keep_finite(new, new_state, old, old_state):
+    """The step's parameters and optimiser state, or the previous ones where the step left
+    finite numbers (an L-BFGS step after convergence: a curvature pair s·y = 0)."""
+    ok = _all_finite(new) & _all_finite(new_state)
+    pick = lambda a, b: jnp.where(ok, a, b)  # noqa: E731
+    return (jax.tree_util.tree_map(pick, new, old),
+            jax.tree_util.tree_map(pick, new_state, old_state))
+
+
 def _settled(tree):
     """``tree`` with the types a compiled step returns: no weak types.  An optimiser's initial
     state holds weak-typed scalars (optax.lbfgs's line-search counters) that its updated state
@@ -164,9 +190,10 @@ def _run(par, objective, drive, y, theta, state, best, best_j, opt, steps):
         with jax.numpy_dtype_promotion("standard"):
             # the value and the objective go along for optimisers with a line search
             # (optax.lbfgs); the others ignore them
-            upd, st = jax.vmap(lambda g_, s_, t_, j_, p_: opt.update(
-                g_, s_, t_, value=j_, grad=g_, value_fn=lambda q: loss(q, p_)))(g, st, th, j, y)
-            th = optax.apply_updates(th, upd)
+            upd, st_new = jax.vmap(lambda g_, s_, t_, j_, p_: opt.update(
+                g_, s_, t_, value=j_, grad=g_,
+                value_fn=_guarded(lambda q: loss(q, p_), t_)))(g, st, th, j, y)
+            th, st = jax.vmap(_keep_finite)(optax.apply_updates(th, upd), st_new, th, st)
         if stored:  # the line search's trials; the start is counted by the caller
             n = optax.tree_utils.tree_get(st, "num_linesearch_steps").astype(jnp.int32)
         else:  # one evaluation per step
@@ -356,8 +383,9 @@ def _descend_chunk(loss, params, state, best, best_v, opt, keys, steps):
         b = jax.tree_util.tree_map(lambda x, y: jnp.where(better, x, y), p, b)
         bv = jnp.where(better, v, bv)
         with jax.numpy_dtype_promotion("standard"):
-            upd, st = opt.update(g, st, p, value=v, grad=g, value_fn=lambda q: f(q)[0])
-            p = eqx.apply_updates(p, upd)
+            upd, st_new = opt.update(g, st, p, value=v, grad=g,
+                                     value_fn=_guarded(lambda q: f(q)[0], p))
+            p, st = _keep_finite(eqx.apply_updates(p, upd), st_new, p, st)
         # this step's evaluation, and a line search's trials (optax.lbfgs)
         trials = optax.tree_utils.tree_get(st, "num_linesearch_steps")
         n = jnp.asarray(1, jnp.int32) + (0 if trials is None else trials.astype(jnp.int32))
