@@ -86,6 +86,27 @@ def test_every_theta_is_admissible(scale):
     mcm.discretize(T)  # the discretisation's own Nyquist check passes
 
 
+def test_gains_stay_finite_and_positive_for_every_finite_theta():
+    """Gains are k_ref e^θ with θ held within ±30: a step of any length (here θ = ±1e3, where
+    e^θ is ∞ or 0 in float64) gives a controller, not an error; inside, θ round-trips."""
+    drive = fdjax.reference_drive()
+    loop = fdjax.reference_controller(drive)
+    pid = fdjax.reference_pid(k_ffv=1.0, k_ffa=1.0)
+    for par, ref, n in ((fdjax.DoubleLoopParameterisation(BOUNDS, loop), loop, 3),
+                        (fdjax.PIDParameterisation(pid), pid, 3)):
+        theta0 = np.asarray(par.from_controller(ref))
+        for big in (1e3, -1e3):
+            c = par.to_controller(theta0 + big)
+            gains = [float(g) for g in (c.kp, c.ki)]
+            assert all(np.isfinite(g) and g > 0 for g in gains), (type(par).__name__, gains)
+            np.testing.assert_allclose(float(c.kp) / float(ref.kp),
+                                       np.exp(np.sign(big) * 30.0), rtol=1e-12)
+        th = theta0.copy()
+        th[:n] += np.array([29.0, -29.0, 5.0])
+        np.testing.assert_allclose(np.asarray(par.from_controller(par.to_controller(th)))[:n],
+                                   th[:n], atol=1e-12)
+
+
 def test_gradient_is_finite_and_matches_central_differences():
     f = lambda t: jnp.sum(jnp.abs(BOUNDS.to_mcm(t).frf(jnp.array([50.0, 131.0, 1500.0]))) ** 2)
     theta = jnp.asarray(np.random.default_rng(2).normal(size=7))

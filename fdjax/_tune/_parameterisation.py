@@ -4,8 +4,10 @@ A tuner (or the scheduling network) works on a vector θ of unconstrained reals 
 controller is built from θ through maps whose image is the admissible set, so no step of any
 size can leave it:
 
-* gains by logarithms about a reference value: k = k_ref e^{θ} (k_p, k_v, k_i); the
-  feed-forward gains, free reals, in units of their reference: k_ff = k_ff,ref θ;
+* gains by logarithms about a reference value: k = k_ref e^{clip(θ, ±30)} (k_p, k_v, k_i),
+  finite and positive for every finite θ (a step of any length, e.g. an L-BFGS step after
+  convergence, cannot overflow the exponential to ∞ or 0; e^30 ≈ 1e13 is beyond any design);
+  the feed-forward gains, free reals, in units of their reference: k_ff = k_ff,ref θ;
 * each filter frequency, damping and gain inside a box, logarithmically:
   x = x_lo (x_hi/x_lo)^{σ(θ)}, σ the logistic function, with every frequency below a fraction
   of the Nyquist frequency π/T of the servo (the discretisation needs ω T < π);
@@ -62,6 +64,15 @@ def _pair(value, where: str) -> tuple[float, float]:
             f"`{where}` must satisfy 0 < low < high < inf, got ({lo:.6g}, {hi:.6g})"
         )
     return lo, hi
+
+
+LOG_GAIN_LIMIT = 30.0
+"""|θ| of a gain beyond which its exponential is held (module docstring)."""
+
+
+def _gain(reference: float, theta: Array) -> Array:
+    """k_ref e^{clip(θ, ±LOG_GAIN_LIMIT)}: finite and positive for every finite θ."""
+    return reference * jnp.exp(jnp.clip(theta, -LOG_GAIN_LIMIT, LOG_GAIN_LIMIT))
 
 
 def _box(theta: Array, lo: float, hi: float) -> Array:
@@ -299,7 +310,7 @@ class DoubleLoopParameterisation(AbstractParameterisation):
             )
         kp, kv, ki, ffv, ffa = self.reference
         on = 1.0 if self.feedforward else 0.0
-        return DoubleLoop(kp * jnp.exp(th[0]), kv * jnp.exp(th[1]), ki * jnp.exp(th[2]),
+        return DoubleLoop(_gain(kp, th[0]), _gain(kv, th[1]), _gain(ki, th[2]),
                           k_ffv=on * ffv * th[3], k_ffa=on * ffa * th[4],
                           mcm=self.mcm.to_mcm(th[5:]))
 
@@ -378,7 +389,7 @@ class PIDParameterisation(AbstractParameterisation):
         kp, ki, kd, ffv, ffa = self.reference
         wd = _box(th[3], _TWO_PI * self.wd_hz[0], _TWO_PI * self.wd_hz[1])
         on = 1.0 if self.feedforward else 0.0
-        return PIDLoop(kp * jnp.exp(th[0]), ki * jnp.exp(th[1]), kd * jnp.exp(th[2]), wd,
+        return PIDLoop(_gain(kp, th[0]), _gain(ki, th[1]), _gain(kd, th[2]), wd,
                        k_ffv=on * ffv * th[4], k_ffa=on * ffa * th[5])
 
     def from_controller(self, loop: PIDLoop) -> Float[Array, " 6"]:
