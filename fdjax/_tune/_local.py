@@ -347,7 +347,11 @@ def descend(loss, params, optimiser, steps: int, *, chunk: int = 25, key=None,
     given: a fresh key per step) by ``steps`` steps of ``optimiser``; ``loss`` is an
     ``eqx.Module`` (its arrays are traced, one compilation for new values).  The steps run in
     a ``lax.scan`` of ``chunk`` steps per compiled call; with ``progress`` (a name) a line per
-    chunk goes to stderr.  Keeps the parameters of the lowest value seen."""
+    chunk goes to stderr.  Keeps the parameters of the lowest value seen.  A step that
+    would leave non-finite parameters or optimiser state is refused (the previous ones are
+    kept), and a line search's trial at a non-finite point gets +∞ without evaluating
+    ``loss``.  The compiled steps are reused by a later call with the same ``optimiser``
+    object and the same shapes."""
     with jax.numpy_dtype_promotion("standard"):
         state = _settled(optimiser.init(params))
     best, best_v = params, _settled(jnp.asarray(jnp.inf))
