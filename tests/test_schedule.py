@@ -94,7 +94,9 @@ def test_filter_table_is_the_schedule_in_drive_units():
     sched = fdjax.ScheduledLoop(fdjax.DoubleLoop(), net, BOUNDS)
     table = sched.filter_table(POSITIONS)
     assert list(table) == ["position_mm", "peak_K", "peak_freq_hz", "peak_xi", "peak_phi_deg",
-                           "notch_freq_hz", "notch_zeta_n", "notch_zeta_d"]
+                           "notch_freq_hz", "notch_zeta_n", "notch_zeta_d", "kp", "kv", "ki"]
+    # the gains are the loop's, the same in every row, unless the network schedules them
+    assert table["kv"] == [float(sched.loop.kv)] * 6
     assert all(len(v) == 6 for v in table.values())
     np.testing.assert_allclose(table["position_mm"], POSITIONS * 1e3, rtol=1e-15)
     m = sched.controller(POSITIONS[3]).mcm
@@ -103,6 +105,56 @@ def test_filter_table_is_the_schedule_in_drive_units():
     np.testing.assert_allclose(table["notch_zeta_n"][3], float(m.notch.zeta_n[0]), rtol=1e-13)
     assert all(z_n < z_d for z_n, z_d in zip(table["notch_zeta_n"], table["notch_zeta_d"]))
     json.dumps(table)  # plain floats
+
+
+def test_a_network_with_gains_schedules_the_feedback_gains(tmp_path):
+    """``with_gains`` adds three zero outputs: the same controller at every position until the
+    gain outputs move; then k(Y) = k e^{δ(Y)} for k_p, k_v, k_i, with the filters unchanged.
+    The gain schedule goes through the table, gradients, fitting and saving."""
+    net = fdjax.ATANetwork((0.1, 0.7), width=4, key=jax.random.PRNGKey(6))
+    loop = fdjax.DoubleLoop(kp=60.0, kv=900.0, ki=120.0)
+    sched = fdjax.ScheduledLoop(loop, net, BOUNDS)
+    wide = eqx.tree_at(lambda s: s.network, sched, net.with_gains())
+    assert wide.network.gains and wide.network(0.3).shape == (10,)
+    assert wide.network.outputs[7:] == ("log_kp", "log_kv", "log_ki")
+    assert wide.network.with_gains() is wide.network
+    for y in (0.1, 0.37, 0.7):
+        a, b = sched.controller(y), wide.controller(y)
+        for x, z in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
+            assert np.array_equal(np.asarray(x), np.asarray(z))
+    # δ = (ln 2, 0, −ln 4) everywhere: a bias on the three gain outputs
+    delta = jnp.array([np.log(2.0), 0.0, -np.log(4.0)])
+    moved = eqx.tree_at(lambda s: s.network.mlp.layers[-1].bias, wide,
+                        wide.network.mlp.layers[-1].bias.at[7:].add(delta))
+    c = moved.controller(0.45)
+    np.testing.assert_allclose([c.kp, c.kv, c.ki], [120.0, 900.0, 30.0], rtol=1e-14)
+    theta = np.asarray(BOUNDS.from_mcm(c.mcm))
+    np.testing.assert_allclose(theta, np.asarray(net(0.45)), rtol=1e-10, atol=1e-12)
+    table = moved.filter_table(POSITIONS)
+    np.testing.assert_allclose(table["ki"], [30.0] * 6, rtol=1e-14)
+    # gradients reach the gain outputs' weights
+    drive = fdjax.reference_drive()
+    f = np.geomspace(10.0, 3000.0, 32)
+    g = eqx.filter_grad(lambda s: jnp.sum(jnp.abs(
+        fdjax.open_loop(s, drive, f, position_m=0.45).position)))(moved)
+    last = np.asarray(g.network.mlp.layers[-1].bias)
+    assert np.all(np.isfinite(last)) and np.all(last[7:] != 0)
+    # fitted to filters and gain factors of local designs
+    targets = np.concatenate([_local_designs(), 0.1 * np.stack([POSITIONS] * 3, 1)], axis=1)
+    fitted, hist = fdjax.fit_network(net.with_gains(), POSITIONS, targets, steps=200)
+    assert float(hist[-1]) < float(hist[0])
+    with pytest.raises(ValueError, match=r"must have shapes \(n,\) and \(n, 10\)"):
+        fdjax.fit_network(fitted, POSITIONS, targets[:, :7])
+    # saved and loaded bit for bit, alone and among designs
+    fdjax.save_schedule(tmp_path / "s.eqx", moved)
+    meta = json.loads((tmp_path / "s.json").read_text())
+    assert meta["network"]["gains"] is True and meta["network"]["outputs"][-1] == "log_ki"
+    fdjax.save_designs(tmp_path / "d", {"gs": moved})
+    for back in (fdjax.load_schedule(tmp_path / "s.eqx"),
+                 fdjax.load_designs(tmp_path / "d")[0]["gs"]):
+        assert back.network.gains
+        for x, z in zip(jax.tree_util.tree_leaves(moved), jax.tree_util.tree_leaves(back)):
+            assert np.array_equal(np.asarray(x), np.asarray(z))
 
 
 def _feedback_schedule():

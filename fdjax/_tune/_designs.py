@@ -26,7 +26,7 @@ _FORMAT = "fdjax-designs/1"
 
 def _describe(name: str, c: AbstractController) -> dict:
     if isinstance(c, ScheduledLoop):
-        return {"kind": "ScheduledLoop", "width": c.network.width,
+        return {"kind": "ScheduledLoop", "width": c.network.width, "gains": c.network.gains,
                 "travel_m": list(c.network.travel_m), "bounds": bounds_json(c.bounds)}
     if isinstance(c, InterpolatedLoop):
         return {"kind": "InterpolatedLoop", "n_points": int(c.positions_m.shape[0]),
@@ -55,7 +55,7 @@ def _skeleton(d: dict) -> AbstractController:
         return InterpolatedLoop(DoubleLoop(), jnp.arange(1.0, n + 1.0),
                                 jnp.zeros((n, len(MCM_PARAMETERS))), bounds_from_json(d["bounds"]))
     if kind == "ScheduledLoop":
-        net = ATANetwork(tuple(d["travel_m"]), width=d["width"])
+        net = ATANetwork(tuple(d["travel_m"]), width=d["width"], gains=d.get("gains", False))
         return ScheduledLoop(DoubleLoop(), net, bounds_from_json(d["bounds"]))
     raise ValueError(f"`load_designs(folder=...)`: unknown controller kind {kind!r}")
 

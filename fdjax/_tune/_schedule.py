@@ -6,9 +6,16 @@ with the network's filters at the position it is asked at.
     MCM(Y) = ``bounds.to_mcm(θ(Y))``,
 
 σ the logistic function (two sigmoid hidden layers, as the paper's network), θ the normalised
-parameters of :class:`MCMBounds` (every output an admissible filter).  :class:`ScheduledLoop` is
-an :class:`fdjax.AbstractController` whose law at Y is that of its double loop with MCM(Y), so it
-runs through every path of the control architecture: margins, stability, both simulations.
+parameters of :class:`MCMBounds` (every output an admissible filter).  A network built with
+``gains=True`` (or widened by :meth:`ATANetwork.with_gains`) schedules the feedback gains too:
+three more outputs δ(Y) = (δ_p, δ_v, δ_i) scale the loop's gains,
+
+    k_p(Y) = k_p e^{δ_p(Y)},   k_v(Y) = k_v e^{δ_v(Y)},   k_i(Y) = k_i e^{δ_i(Y)},
+
+δ held within ±30 (``LOG_GAIN_LIMIT``), so every output is a positive, finite gain.
+:class:`ScheduledLoop` is an :class:`fdjax.AbstractController` whose law at Y is that of its
+double loop with MCM(Y), so it runs through every path of the control architecture: margins,
+stability, both simulations.
 
 :func:`save_schedule` / :func:`load_schedule` store a schedule as its leaves
 (``eqx.tree_serialise_leaves``) beside a JSON file of its hyperparameters and units.
@@ -29,7 +36,7 @@ from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 from .._control._controllers import AbstractController, DoubleLoop, Law
 from .._filters import MCM
 from ._optimisers import default_optimiser
-from ._parameterisation import MCM_PARAMETERS, MCMBounds
+from ._parameterisation import LOG_GAIN_LIMIT, MCM_PARAMETERS, MCMBounds
 
 __all__ = ["ATANetwork", "ScheduledLoop", "InterpolatedLoop", "fit_network", "save_schedule",
            "load_schedule"]
@@ -37,19 +44,26 @@ __all__ = ["ATANetwork", "ScheduledLoop", "InterpolatedLoop", "fit_network", "sa
 _FORMAT = "fdjax-schedule/1"
 
 
+GAIN_OUTPUTS = ("log_kp", "log_kv", "log_ki")
+"""The gain outputs of an :class:`ATANetwork` with ``gains=True``: δ_p, δ_v, δ_i."""
+
+
 class ATANetwork(eqx.Module):
     r"""The scheduling network: normalised table position in, two sigmoid hidden layers of
-    ``width`` neurons, the seven normalised MCM parameters out (module docstring).
+    ``width`` neurons, the seven normalised MCM parameters out, and with ``gains=True`` the
+    three logarithmic gain factors δ(Y) after them (module docstring).
 
     Attributes:
-        mlp: the ``eqx.nn.MLP`` (1 → width → width → 7).
+        mlp: the ``eqx.nn.MLP`` (1 → width → width → 7, or 10 with gains).
         travel_m: (Y_min, Y_max) that map to ŷ = ∓1 (static).
+        gains: whether the network schedules the gains too (static).
     """
 
     mlp: eqx.nn.MLP
     travel_m: tuple[float, float] = eqx.field(static=True)
+    gains: bool = eqx.field(static=True)
 
-    def __init__(self, travel_m: tuple[float, float], *, width: int = 8,
+    def __init__(self, travel_m: tuple[float, float], *, width: int = 8, gains: bool = False,
                  key: PRNGKeyArray | None = None):
         lo, hi = (float(v) for v in travel_m)
         if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
@@ -59,29 +73,69 @@ class ATANetwork(eqx.Module):
             )
         if not (isinstance(width, int) and 1 <= width <= 256):
             raise ValueError(f"`ATANetwork(width=...)` must be an int in [1, 256], got {width!r}")
+        if not isinstance(gains, bool):
+            raise TypeError(f"`ATANetwork(gains=...)` must be a bool, got {gains!r}")
         key = jax.random.PRNGKey(0) if key is None else key
-        self.mlp = eqx.nn.MLP(1, len(MCM_PARAMETERS), width, 2, activation=jax.nn.sigmoid,
+        n_out = len(MCM_PARAMETERS) + (len(GAIN_OUTPUTS) if gains else 0)
+        self.mlp = eqx.nn.MLP(1, n_out, width, 2, activation=jax.nn.sigmoid,
                               key=key, dtype=jnp.float64)
         self.travel_m = (lo, hi)
+        self.gains = gains
 
     @property
     def width(self) -> int:
         """Neurons per hidden layer."""
         return self.mlp.width_size
 
-    def __call__(self, position_m: Float[ArrayLike, ""]) -> Float[Array, " 7"]:
-        """θ(Y), the normalised MCM parameters at table position Y (m)."""
+    @property
+    def outputs(self) -> tuple[str, ...]:
+        """The names of the outputs: :data:`fdjax.MCM_PARAMETERS`, then with gains
+        ``log_kp``, ``log_kv``, ``log_ki`` (the factors δ of the module docstring)."""
+        return MCM_PARAMETERS + (GAIN_OUTPUTS if self.gains else ())
+
+    def __call__(self, position_m: Float[ArrayLike, ""]) -> Float[Array, " outputs"]:
+        """The outputs at table position Y (m): θ(Y), the normalised MCM parameters, and with
+        gains δ(Y) after them."""
         lo, hi = self.travel_m
         y = 2.0 * (jnp.asarray(position_m, jnp.float64) - lo) / (hi - lo) - 1.0
         return self.mlp(jnp.reshape(y, (1,)))
+
+    def with_gains(self) -> ATANetwork:
+        """This network with three gain outputs added, their weights and biases zero: the same
+        filters at every position and δ(Y) = 0, the loop's own gains, until it is trained (the
+        start of an end-to-end gain schedule from a filter schedule)."""
+        if self.gains:
+            return self
+        last = self.mlp.layers[-1]
+        pad = len(GAIN_OUTPUTS)
+        wider = ATANetwork(self.travel_m, width=self.width, gains=True)
+        layers = self.mlp.layers[:-1] + (eqx.tree_at(
+            lambda lin: (lin.weight, lin.bias), wider.mlp.layers[-1],
+            (jnp.concatenate([last.weight, jnp.zeros((pad, last.weight.shape[1]))]),
+             jnp.concatenate([last.bias, jnp.zeros(pad)]))),)
+        return eqx.tree_at(lambda n: n.mlp.layers, wider, layers)
+
+
+def _scheduled(loop: DoubleLoop, network: ATANetwork, bounds: MCMBounds,
+               position_m) -> DoubleLoop:
+    """The double loop ``loop`` with the network's MCM (and gain factors) at Y."""
+    out = network(position_m)
+    n = len(MCM_PARAMETERS)
+    loop = eqx.tree_at(lambda c: c.mcm, loop, bounds.to_mcm(out[:n]))
+    if network.gains:
+        d = jnp.clip(out[n:], -LOG_GAIN_LIMIT, LOG_GAIN_LIMIT)
+        loop = eqx.tree_at(lambda c: (c.log_kp, c.log_kv, c.log_ki), loop,
+                           (loop.log_kp + d[0], loop.log_kv + d[1], loop.log_ki + d[2]))
+    return loop
 
 
 class ScheduledLoop(AbstractController):
     r"""A double loop whose MCM is scheduled over the table position by an :class:`ATANetwork`
     (paper Fig. 15): at Y, the law of ``loop`` with ``bounds.to_mcm(network(Y))``.
 
-    The gains (k_p, k_v, k_i, feed-forward) are those of ``loop`` (its own MCM is not used); the
-    network's weights and the gains are the tunable leaves.
+    The gains (k_p, k_v, k_i, feed-forward) are those of ``loop`` (its own MCM is not used),
+    the feedback gains scaled by e^{δ(Y)} when the network schedules them
+    (``ATANetwork(gains=True)``); the network's weights and the gains are the tunable leaves.
 
     Attributes:
         loop: the double loop that carries the gains.
@@ -106,20 +160,21 @@ class ScheduledLoop(AbstractController):
 
     def controller(self, position_m: Float[ArrayLike, ""]) -> DoubleLoop:
         """The fixed double loop the schedule runs at table position Y (m)."""
-        mcm = self.bounds.to_mcm(self.network(position_m))
-        return eqx.tree_at(lambda c: c.mcm, self.loop, mcm)
+        return _scheduled(self.loop, self.network, self.bounds, position_m)
 
     def filter_table(self, positions_m: Float[ArrayLike, " n"]) -> dict[str, list[float]]:
         """The scheduled filters at ``positions_m`` (m), one row per position, in the units a
         drive's parameter list uses: ``position_mm``; the peak filter's ``peak_K``,
         ``peak_freq_hz``, ``peak_xi``, ``peak_phi_deg``; the notch's ``notch_freq_hz``,
-        ``notch_zeta_n``, ``notch_zeta_d``.  Columns of a CSV or a JSON table."""
+        ``notch_zeta_n``, ``notch_zeta_d``; the feedback gains ``kp`` (1/s), ``kv`` (A·s/m),
+        ``ki`` (rad/s), the same in every row unless the network schedules them.  Columns of a
+        CSV or a JSON table."""
         y = jnp.atleast_1d(jnp.asarray(positions_m, jnp.float64))
         if y.ndim != 1:
             raise ValueError(f"`ScheduledLoop.filter_table(positions_m=...)` must be 1-D, got "
                              f"shape {y.shape}")
-        mcms = jax.vmap(lambda p: self.bounds.to_mcm(self.network(p)))(y)
-        pk, nt = mcms.peak, mcms.notch
+        loops = jax.vmap(self.controller)(y)
+        pk, nt = loops.mcm.peak, loops.mcm.notch
         cols = {
             "position_mm": y * 1e3,
             "peak_K": pk.K[:, 0],
@@ -129,6 +184,7 @@ class ScheduledLoop(AbstractController):
             "notch_freq_hz": nt.omega[:, 0] / (2 * math.pi),
             "notch_zeta_n": nt.zeta_n[:, 0],
             "notch_zeta_d": nt.zeta_d[:, 0],
+            "kp": loops.kp, "kv": loops.kv, "ki": loops.ki,
         }
         return {k: [float(v) for v in jnp.asarray(c)] for k, c in cols.items()}
 
@@ -207,7 +263,8 @@ def fit_network(
 ) -> tuple[ATANetwork, Float[Array, " steps"]]:
     r"""Train the network by backpropagation on local designs, as the paper does (Sec. 4.2):
     minimise the mean squared error (1/n) Σ_i ‖θ(Y_i) − θ_i‖² over the design positions Y_i
-    and their normalised parameters θ_i (:meth:`MCMBounds.from_mcm` of the local MCMs).
+    and their normalised parameters θ_i (:meth:`MCMBounds.from_mcm` of the local MCMs; for a
+    network with gains, each row followed by the designs' log gain factors δ_i).
 
     ``steps`` optimiser steps (a ``lax.scan``: one compilation) of ``optimiser`` (default
     ``optax.adam(1e-2)``) on the network's weights.  Returns the trained network and the loss
@@ -218,10 +275,11 @@ def fit_network(
                         f"{type(network).__name__}")
     y = jnp.asarray(positions_m, jnp.float64)
     t = jnp.asarray(targets, jnp.float64)
-    if y.ndim != 1 or t.shape != (y.shape[0], len(MCM_PARAMETERS)):
+    m = len(network.outputs)
+    if y.ndim != 1 or t.shape != (y.shape[0], m):
         raise ValueError(
-            f"`fit_network(positions_m=..., targets=...)` must have shapes (n,) and (n, 7), got "
-            f"{y.shape} and {t.shape}"
+            f"`fit_network(positions_m=..., targets=...)` must have shapes (n,) and (n, {m}) "
+            f"(the network's outputs), got {y.shape} and {t.shape}"
         )
     if not (isinstance(steps, int) and steps >= 1):
         raise ValueError(f"`fit_network(steps=...)` must be a positive int, got {steps!r}")
@@ -275,7 +333,8 @@ def _hyperparameters(schedule: ScheduledLoop, extra: dict | None) -> dict:
         "format": _FORMAT,
         "network": {"width": schedule.network.width, "depth": 2, "activation": "sigmoid",
                     "inputs": ["position (normalised over travel_m)"],
-                    "outputs": list(MCM_PARAMETERS), "travel_m": list(schedule.network.travel_m)},
+                    "gains": schedule.network.gains, "outputs": list(schedule.network.outputs),
+                    "travel_m": list(schedule.network.travel_m)},
         "bounds": bounds_json(b),
         "units": {"kp": "1/s", "kv": "A·s/m", "ki": "rad/s", "k_ffv": "-", "k_ffa": "A·s²/m",
                   "position": "m", "omega": "rad/s"},
@@ -315,6 +374,7 @@ def load_schedule(path: str | os.PathLike) -> ScheduledLoop:
         raise ValueError(f"`load_schedule(path=...)`: {meta_path!r} is not an fdjax schedule "
                          f"(format {meta.get('format')!r}, expected {_FORMAT!r})")
     bounds = bounds_from_json(meta["bounds"])
-    net = ATANetwork(tuple(meta["network"]["travel_m"]), width=meta["network"]["width"])
+    net = ATANetwork(tuple(meta["network"]["travel_m"]), width=meta["network"]["width"],
+                     gains=bool(meta["network"].get("gains", False)))
     like = ScheduledLoop(DoubleLoop(**meta["gains"]), net, bounds)
     return eqx.tree_deserialise_leaves(path, like)
