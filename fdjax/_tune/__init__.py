@@ -5,8 +5,9 @@ steps cannot break.
   margins as distances from forbidden sets of the Nyquist plane).
 * ``_objective``: :class:`Objective`, RMS tracking error of the sampled loop plus the
   penalties, one function of the controller and the position.
-* ``_schedule``: :class:`ATANetwork` (position → the seven normalised filter parameters),
-  :class:`ScheduledLoop` (the double loop with the network's MCM), save and load.
+* ``_schedule``: :class:`ATANetwork` (position → the seven normalised filter parameters, and
+  optionally three log gain factors), :class:`ScheduledLoop` (the double loop with the
+  network's MCM and gains), save and load.
 * ``_local``: :func:`tune_local`, one design per table position in one ``vmap``-ed optax run;
   :func:`tune_robust` (one design for all positions), :func:`tune_shared_gains` (one gain set,
   one MCM per position); :func:`descend`, the optax loop they share.

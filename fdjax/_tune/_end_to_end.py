@@ -92,7 +92,9 @@ def train_schedule(
         key: PRNG key of the position draws (default ``PRNGKey(0)``).
         optimiser: an optax transformation (default ``optax.adam(3e-3)``); a later call
             with the same object and shapes reuses the compiled steps.
-        train_gains: also train the loop's feedback gains (k_p, k_v, k_i).
+        train_gains: also train the loop's feedback gains (k_p, k_v, k_i), common to every
+            position.  A network with gains (``ATANetwork(gains=True)``) schedules them over
+            the position through its own outputs, which are trained with its weights.
         train_feedforward: also train its feed-forward gains (k_ffv, k_ffa); off, they keep
             their values (zero in a feedback-only loop), so that a feedback schedule is compared
             with feedback designs.
