@@ -122,6 +122,10 @@ def test_demo_writes_figures(tmp_path):
     shipped, _ = fdjax.load_designs(cli.SHIPPED_DESIGNS)
     np.testing.assert_array_equal(sched.network(0.37), shipped["mcm_ata_e2e"].network(0.37))
     assert (out / "filters.csv").exists() and (out / "filters.json").exists()
+    filters = json.loads((out / "filters.json").read_text())
+    # the schedule's common gains in every row, beside its filters
+    np.testing.assert_allclose(filters["kv"], float(shipped["mcm_ata_e2e"].loop.kv), rtol=1e-14)
+    assert all(c[name]["modulus_margin_required"] == 0.5 for name in fdjax.CONTROLLERS)
 
 
 def test_modes_writes_table(tmp_path, capsys):
