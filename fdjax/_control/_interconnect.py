@@ -166,13 +166,25 @@ def discrete_law(law: Law, period, filter_method: str) -> LTI:
     return realise_law(law, period=period, filter_method=filter_method)
 
 
-def sampled_closed_loop_matrices(
-    law: Law, plant, k_motor, period, d: int, filter_method: str
-) -> LTI:
+class SampledParts(eqx.Module):
+    """What the sampled loop is built from at one position: the discrete law K (the servo's
+    realisation of the law at period T) and the zero-order-hold plant (Φ, Γ) from (T1, F3)."""
+
+    law: LTI
+    Phi: Array
+    Gam: Array
+
+    @classmethod
+    def of(cls, law: Law, plant, period, filter_method: str) -> "SampledParts":
+        h = jnp.asarray(period, jnp.float64)
+        Phi, Gam = zoh(plant.A, plant.B, h)
+        return cls(discrete_law(law, h, filter_method), Phi, Gam)
+
+
+def sampled_closed_loop_matrices(parts: SampledParts, plant, k_motor, period, d: int) -> LTI:
     """The sampled loop (module docstring) as one discrete LTI system."""
     h = jnp.asarray(period, jnp.float64)
-    Phi, Gam = zoh(plant.A, plant.B, h)
-    K = discrete_law(law, h, filter_method)
+    Phi, Gam, K = parts.Phi, parts.Gam, parts.law
     npl, nk = plant.A.shape[0], K.A.shape[0]
     R = _Rows({"plant": npl, "theta": 1, "law": nk, "delay": d})
     T1 = R.block("delay", jnp.zeros((1, d)).at[0, d - 1].set(k_motor))
@@ -235,9 +247,8 @@ class SampledPlant(eqx.Module):
     period: Array
 
     @classmethod
-    def of(cls, plant, period):
-        Phi, Gam = zoh(plant.A, plant.B[:, :1], period)
-        return cls(Phi, Gam, plant.C[:2], plant.D[:2, :1], plant.screw_ratio,
+    def of(cls, parts: SampledParts, plant, period):
+        return cls(parts.Phi, parts.Gam[:, :1], plant.C[:2], plant.D[:2, :1], plant.screw_ratio,
                    jnp.asarray(period, jnp.float64))
 
     def channels(self, z) -> Channels:

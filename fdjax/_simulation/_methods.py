@@ -39,11 +39,11 @@ from jaxtyping import Array, Float
 
 from .._control._blocks import DEFAULT_PADE_ORDER, FILTER_METHODS, pade_order
 from .._control._interconnect import (
+    SampledParts,
     SampledPlant,
     continuous_channels,
     continuous_closed_loop,
     continuous_open_loops,
-    discrete_law,
     frf_channels,
     sampled_closed_loop_matrices,
     sampled_open_loops,
@@ -104,9 +104,12 @@ class SampledData(AbstractLoopModel):
         filter_method: how the MCM is discretised, ``"fitted"`` (default, within 1 % of the
             continuous filter below Nyquist/4) or ``"tustin"`` (prewarped bilinear, what many
             drives run); see :meth:`fdjax.MCM.discretize`.
+        shared: None (default; each loop discretises the design where it is built) or the
+            discretisation of one design around one plant (:meth:`sharing`).
     """
 
     filter_method: str = eqx.field(static=True, default="fitted")
+    shared: SampledParts | None = None
     takes_frf: ClassVar[bool] = False
 
     def __check_init__(self):
@@ -116,20 +119,33 @@ class SampledData(AbstractLoopModel):
                 f"got {self.filter_method!r}"
             )
 
-    def closed_loop(self, controller, plant, servo) -> LTI:
+    def parts(self, controller, plant, servo) -> SampledParts:
+        """The discrete law and the zero-order-hold plant at the plant's position: what both
+        the closed loop and the open loops are built from (:meth:`sharing` computes them once
+        for both)."""
+        if self.shared is not None:
+            return self.shared
         law = controller.law(plant.position_m)
+        return SampledParts.of(law, plant, servo.period, self.filter_method)
+
+    def sharing(self, controller, plant, servo) -> "SampledData":
+        """This model holding the discretisation of ``controller`` around ``plant``: its closed
+        loop and its open loops (a simulation and the margins of one design) then share one
+        discrete law and one matrix exponential.  Only for that controller and plant."""
+        return eqx.tree_at(lambda m: m.shared, self, self.parts(controller, plant, servo),
+                           is_leaf=lambda x: x is None)
+
+    def closed_loop(self, controller, plant, servo) -> LTI:
         return sampled_closed_loop_matrices(
-            law, plant, servo.k_motor, servo.period, servo.delay_samples, self.filter_method
+            self.parts(controller, plant, servo), plant, servo.k_motor, servo.period,
+            servo.delay_samples,
         )
 
     def open_loop_model(self, controller, plant, servo):
         law = controller.law(plant.position_m)
         reads = (law.reads("x2"), law.reads("v_m"))
-        params = (
-            discrete_law(law, servo.period, self.filter_method),
-            SampledPlant.of(plant, servo.period),
-            servo.k_motor,
-        )
+        parts = self.parts(controller, plant, servo)
+        params = (parts.law, SampledPlant.of(parts, plant, servo.period), servo.k_motor)
         d = servo.delay_samples
 
         def L_fn(p, omega):
@@ -171,6 +187,10 @@ class SampledData(AbstractLoopModel):
         at the step's midpoint position (exponential midpoint rule, second order in the plant's
         variation over a step) and at Y_k for the outputs; a ``lax.scan`` of one step per
         sample (the matrices change every sample)."""
+
+        if self.shared is not None:
+            raise ValueError("`simulate(moving=True)` rebuilds the loop at every position: pass "
+                             "fdjax.SampledData() without a shared discretisation")
 
         def system(y):
             return self.closed_loop(controller, moving.at(y), servo)

@@ -134,10 +134,12 @@ class Objective(eqx.Module):
                             f"{type(drive).__name__}")
         position_m = drive._check_travel(position_m, "Objective")
         plant = state_space(drive, position_m, twin=self.twin)
-        sim = simulate(controller, plant, self.reference, SampledData(), servo=self.servo,
+        # one discrete law and one zero-order-hold plant for the run and the open loops
+        method = SampledData().sharing(controller, plant, self.servo)
+        sim = simulate(controller, plant, self.reference, method, servo=self.servo,
                        duration=self.duration, error_bound=self.error_bound_m, throw=False)
         rms = sim.rms_error(self.output)
-        loops = open_loop(controller, plant, self.freq_hz, servo=self.servo)
+        loops = open_loop(controller, plant, self.freq_hz, servo=self.servo, method=method)
         pen = sum(
             margin_penalty(L, modulus_margin=self.modulus_margin,
                            gain_margin_db=self.gain_margin_db,
