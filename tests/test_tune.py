@@ -242,7 +242,8 @@ def test_objective_is_finite_penalising_and_differentiable():
                           twin=fdjax.TwinOptions(kept_modes=6))
     par = fdjax.DoubleLoopParameterisation(BOUNDS, fdjax.reference_controller(drive))
     theta0 = par.from_controller(fdjax.reference_controller(drive))
-    J = eqx.filter_jit(lambda th, y: obj(par.to_controller(th), drive, y))
+    terms_of = eqx.filter_jit(lambda o, th, y: o(par.to_controller(th), drive, y))
+    J = lambda th, y: terms_of(obj, th, y)  # noqa: E731
     good = J(theta0, 0.3)
     assert bool(good.stable) and float(good.growth_rate) < 0
     sim = fdjax.simulate(par.to_controller(theta0), drive, ref, position_m=0.3,
@@ -267,7 +268,9 @@ def test_objective_is_finite_penalising_and_differentiable():
     # and sharpness (here the sharp penalties of tuning_objective: w = 0.01, β = 10/w)
     sharp = dataclasses.replace(obj, margin_width=0.01, margin_sharpness=1000.0)
     assert fdjax.tuning_objective(margin_width=0.01).margin_sharpness == 1000.0
-    terms = eqx.filter_jit(lambda th, y: sharp(par.to_controller(th), drive, y))(theta0, 0.3)
+    with compilations() as names:  # widths and weights are traced: nothing compiles
+        terms = terms_of(sharp, theta0, 0.3)
+    assert names == [], names
     plant = fdjax.state_space(drive, 0.3, twin=fdjax.TwinOptions(kept_modes=6))
     loops = fdjax.open_loop(par.to_controller(theta0), plant, obj.freq_hz)
     wide_pen, sharp_pen = (
@@ -297,6 +300,12 @@ def test_objective_names_itself_in_errors():
         with pytest.raises(ValueError, match=rf"`Objective\({name}=\.\.\.\)` must be positive, "
                                              r"got 0.0"):
             fdjax.Objective(ref, np.geomspace(5.0, 3900.0, 64), **{name: 0.0})
+    with pytest.raises(ValueError, match=r"`Objective\(margin_weight=\.\.\.\)` must be "
+                                         r"non-negative, got -1.0"):
+        fdjax.Objective(ref, np.geomspace(5.0, 3900.0, 64), margin_weight=-1.0)
+    with pytest.raises(ValueError, match=r"`Objective\(error_scale_m=\.\.\.\)` must be a "
+                                         r"scalar, got shape \(2,\)"):
+        fdjax.Objective(ref, np.geomspace(5.0, 3900.0, 64), error_scale_m=[1e-6, 1e-5])
 
 
 # ------------------------------------------------------------------------------ local tuning

@@ -26,6 +26,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from .._analysis import open_loop
+from .._checks import is_concrete
 from .._control._controllers import AbstractController
 from .._control._servo import Servo
 from .._drive._model import BallScrewDrive
@@ -36,6 +37,11 @@ from .._trajectory import Trajectory
 from ._penalties import margin_penalty
 
 __all__ = ["Objective", "ObjectiveTerms"]
+
+
+def _scalar(x):
+    # weights, widths and scales are traced leaves: a new value compiles nothing
+    return jnp.asarray(x, jnp.float64)
 
 
 class ObjectiveTerms(eqx.Module):
@@ -69,12 +75,15 @@ class Objective(eqx.Module):
         servo: the servo hardware (not tuned).
         twin: how the drive becomes its twin (static).
         output: ``"scale"`` (x2) or ``"tool"`` (x3), static.
-        error_scale_m: e_ref (m), static.
+        error_scale_m: e_ref (m).
         modulus_margin, gain_margin_db, phase_margin_deg: the requirements (static).
-        margin_weight, stability_weight, current_weight: w_m, w_s, w_c (static).
-        margin_width: the margin penalties' width w (static): a design settles where the
+        margin_weight, stability_weight, current_weight: w_m, w_s, w_c.
+        margin_width: the margin penalties' width w: a design settles where the
             penalty's slope meets that of the error, a few w above each requirement.
-        margin_sharpness: the smooth minimum's β over the grid (static; error ≤ log(n)/β).
+        margin_sharpness: the smooth minimum's β over the grid (error ≤ log(n)/β).
+
+    The weights, ``error_scale_m``, ``margin_width`` and ``margin_sharpness`` are array leaves:
+    an objective with other values runs the programs compiled for the first.
         max_growth_rate: g_max (1/s), static: the least stable pole must decay at least at −g_max.
         current_limit_a: i_max (A), static.
         duration: simulated time (s), static; default the reference's duration.
@@ -87,16 +96,16 @@ class Objective(eqx.Module):
     servo: Servo = Servo()
     twin: TwinOptions | None = eqx.field(static=True, default=None)
     output: str = eqx.field(static=True, default="scale")
-    error_scale_m: float = eqx.field(static=True, default=1e-6)
+    error_scale_m: Float[Array, ""] = eqx.field(converter=_scalar, default=1e-6)
     modulus_margin: float = eqx.field(static=True, default=0.5)
     gain_margin_db: float = eqx.field(static=True, default=6.0)
     phase_margin_deg: float = eqx.field(static=True, default=30.0)
-    margin_weight: float = eqx.field(static=True, default=10.0)
-    margin_width: float = eqx.field(static=True, default=0.05)
-    margin_sharpness: float = eqx.field(static=True, default=200.0)
-    stability_weight: float = eqx.field(static=True, default=10.0)
+    margin_weight: Float[Array, ""] = eqx.field(converter=_scalar, default=10.0)
+    margin_width: Float[Array, ""] = eqx.field(converter=_scalar, default=0.05)
+    margin_sharpness: Float[Array, ""] = eqx.field(converter=_scalar, default=200.0)
+    stability_weight: Float[Array, ""] = eqx.field(converter=_scalar, default=10.0)
     max_growth_rate: float = eqx.field(static=True, default=-5.0)
-    current_weight: float = eqx.field(static=True, default=1.0)
+    current_weight: Float[Array, ""] = eqx.field(converter=_scalar, default=1.0)
     current_limit_a: float = eqx.field(static=True, default=40.0)
     duration: float | None = eqx.field(static=True, default=None)
     error_bound_m: float = eqx.field(static=True, default=0.01)
@@ -117,8 +126,15 @@ class Objective(eqx.Module):
         if f.ndim != 1 or f.shape[0] < 8:
             raise ValueError(f"`Objective(freq_hz=...)` must be a 1-D grid of at least 8 "
                              f"frequencies, got shape {f.shape}")
-        for name in ("error_scale_m", "current_limit_a", "modulus_margin", "margin_width",
-                     "margin_sharpness"):
+        for name in ("error_scale_m", "margin_width", "margin_sharpness", "margin_weight",
+                     "stability_weight", "current_weight"):
+            v = getattr(self, name)
+            if v.ndim != 0:
+                raise ValueError(f"`Objective({name}=...)` must be a scalar, got shape {v.shape}")
+            if is_concrete(v) and not float(v) >= (0 if name.endswith("weight") else 1e-300):
+                kind = "non-negative" if name.endswith("weight") else "positive"
+                raise ValueError(f"`Objective({name}=...)` must be {kind}, got {float(v)!r}")
+        for name in ("current_limit_a", "modulus_margin"):
             if not float(getattr(self, name)) > 0:
                 raise ValueError(f"`Objective({name}=...)` must be positive, got "
                                  f"{getattr(self, name)!r}")
