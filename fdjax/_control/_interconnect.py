@@ -175,7 +175,7 @@ class SampledParts(eqx.Module):
     Gam: Array
 
     @classmethod
-    def of(cls, law: Law, plant, period, filter_method: str) -> "SampledParts":
+    def of(cls, law: Law, plant, period, filter_method: str) -> SampledParts:
         h = jnp.asarray(period, jnp.float64)
         Phi, Gam = zoh(plant.A, plant.B, h)
         return cls(discrete_law(law, h, filter_method), Phi, Gam)

@@ -207,8 +207,13 @@ class AbstractFilter(eqx.Module):
                 series_sos=_tustin_prewarped(sn, sd, sw, dt)[:, None, :],
                 dt=dt,
             )
-        pf, pi = _fitted_sections(pn, pd, pw, dt, parallel=True)
-        sf, si = _fitted_sections(sn, sd, sw, dt, parallel=False)
+        # both banks in one fit (one program for the peaks and the notches)
+        p = pw.shape[0]
+        fir, iir = _fitted_sections(
+            jnp.concatenate([pn, sn]), jnp.concatenate([pd, sd]), w0, dt,
+            jnp.arange(w0.shape[0]) < p,
+        )
+        pf, pi, sf, si = fir[:p], iir[:p], fir[p:], iir[p:]
         return DiscreteFilter(
             parallel_sos=jnp.concatenate([pf, pi], axis=0),
             series_sos=jnp.stack([sf, si], axis=1),

@@ -25,7 +25,6 @@ This file holds both maps (from the banks of ``_sections`` to rows in scipy's so
 
 from __future__ import annotations
 
-import functools
 import math
 
 import equinox as eqx
@@ -110,9 +109,9 @@ def _solve3(A, B):
     return (c @ B) / det
 
 
-@functools.partial(jax.jit, static_argnames="parallel")
+@jax.jit
 def _fitted_sections(
-    num: Array, den: Array, w0: Array, dt: Array, parallel: bool
+    num: Array, den: Array, w0: Array, dt: Array, parallel: Array
 ) -> tuple[Float[Array, "k 6"], Float[Array, "k 6"]]:
     r"""Pole-matched, fitted-numerator discretisation of each section (method="fitted").
 
@@ -125,9 +124,9 @@ def _fitted_sections(
     own frequency ω0 (a complex equation: a notch keeps its depth ζ_n/ζ_d there, a peak lobe
     its height and phase); the other two minimise the largest relative error
     |H_d(e^{iωdt}) − H(iω)|/|ref| over 0 ≤ ω dt ≤ π/4, by Lawson's iteratively reweighted
-    least squares. ref = H for a series (notch) section and 1 + H for a parallel (peak) one,
-    whose error adds to the direct path 1. Returns the FIR rows [c0, c1, c2, 1, 0, 0] and the
-    IIR rows [c3, c4, 0, 1, a1, a2], both (k, 6).
+    least squares. ref = H for a series (notch) section and 1 + H for a parallel (peak) one
+    (``parallel``, one flag per section), whose error adds to the direct path 1. Returns the
+    FIR rows [c0, c1, c2, 1, 0, 0] and the IIR rows [c3, c4, 0, 1, a1, a2], both (k, 6).
     """
     k = w0.shape[0]
     a1, a2 = _matched_denominator(den, dt)
@@ -150,7 +149,7 @@ def _fitted_sections(
     s = 1j * to_complex(theta / dt)
     n0, n1, n2, d1, d2 = (to_complex(c)[:, None] for c in (*num.T, den[:, 1], den[:, 2]))
     H = ((n0 * s + n1) * s + n2) / ((s + d1) * s + d2)
-    ref = 1 + H if parallel else H
+    ref = jnp.where(parallel[:, None], 1 + H, H)
     fit = theta[:, :-2]
     in_band = (fit >= 0) & (fit <= _FIT_BAND)
     wt = jnp.where(in_band, 1 / jnp.abs(ref[:, :-2]), 0.0)

@@ -128,7 +128,7 @@ class SampledData(AbstractLoopModel):
         law = controller.law(plant.position_m)
         return SampledParts.of(law, plant, servo.period, self.filter_method)
 
-    def sharing(self, controller, plant, servo) -> "SampledData":
+    def sharing(self, controller, plant, servo) -> SampledData:
         """This model holding the discretisation of ``controller`` around ``plant``: its closed
         loop and its open loops (a simulation and the margins of one design) then share one
         discrete law and one matrix exponential.  Only for that controller and plant."""

@@ -1,0 +1,195 @@
+"""Closed-loop time simulation of the drive: instability and divergence reported with the
+position, gradients against central differences, positions batched, the moving table.
+
+Oracles: the closed loop's poles (eigenvalues), central differences, runs one position at a
+time and the frozen table.
+"""
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from table1 import table1_loop  # the Table 1 drive's hand-set double loop
+
+import fdjax
+from fdjax._trajectory import jerk_limited, reciprocating
+
+POS = 0.115
+DT = 5.0e-5  # 20 kHz: τ = 250 µs is 5 samples
+SERVO = fdjax.Servo(period=DT, delay_samples=5)
+Y_END = 0.698  # near the screw end: the 2 mm stroke of `reference` stays inside the travel
+PADE6 = fdjax.Continuous(6)
+TWIN8 = fdjax.TwinOptions(kept_modes=8)  # a reduced twin (the moving table rebuilds it per step)
+
+
+@pytest.fixture(scope="module")
+def drive():
+    return fdjax.table1_drive()
+
+
+@pytest.fixture(scope="module")
+def mcm():
+    return fdjax.MCM(
+        fdjax.PeakFilter(0.3, 2 * np.pi * 120.0, 0.15, 0.4),
+        fdjax.NotchFilter(2 * np.pi * 1000.0, 0.05, 0.5),
+    )
+
+
+@pytest.fixture(scope="module")
+def reference():
+    return reciprocating(stroke=2e-3, v_max=0.05, a_max=2.0, j_max=400.0, cycles=1)
+
+
+def _rel(a, b):
+    return np.max(np.abs(np.asarray(a) - np.asarray(b))) / np.max(np.abs(np.asarray(b)))
+
+
+def _hot_pid(drive, factor):
+    """The default PID with every gain scaled to ``factor`` times its gain margin at 0.7 m:
+    unstable there by construction (checked by the closed-loop poles)."""
+    base = fdjax.PIDLoop()
+    f = np.geomspace(1.0, 3000.0, 4000)
+    gm = float(fdjax.loop_margins(base, fdjax.state_space(drive, Y_END), f, servo=SERVO)
+               .position.gain_margin)
+    g = factor * gm
+    hot = fdjax.PIDLoop(base.kp * g, base.ki * g, base.kd * g, base.wd)
+    assert not bool(fdjax.check_stability(hot, drive, position_m=Y_END, servo=SERVO).stable)
+    return hot
+
+
+def test_unstable_loop_is_reported_with_position(drive, reference):
+    hot = _hot_pid(drive, 1.5)
+    for method in (fdjax.SampledData(), fdjax.PadeODE()):
+        with pytest.raises(RuntimeError, match=r"unstable at table position 0\.698 m: pole at"):
+            fdjax.simulate(hot, drive, reference, method, servo=SERVO, position_m=Y_END,
+                           duration=0.05)
+        sim = fdjax.simulate(hot, drive, reference, method, servo=SERVO, position_m=Y_END,
+                             duration=0.05, throw=False)
+        assert sim.result == fdjax.RESULTS.unstable
+        # Gelfand's formula on the transition matrix gives the growth rate of the eigenvalues
+        # of check_stability (s = ln z / T for the sampled loop), to the accuracy of exp(A h)
+        # for the badly scaled Padé loop (ε‖Ah‖₁/h ≈ 1e-4 1/s)
+        st = fdjax.check_stability(hot, drive, position_m=Y_END, servo=SERVO,
+                                   method=PADE6 if isinstance(method, fdjax.PadeODE) else method)
+        assert float(st.growth_rate) > 0
+        np.testing.assert_allclose(sim.growth_rate, st.growth_rate, atol=1e-3)
+    # the default loop is stable there and runs to the end
+    fine = fdjax.simulate(fdjax.PIDLoop(), drive, reference, servo=SERVO, position_m=Y_END,
+                          duration=0.05)
+    assert fine.result == fdjax.RESULTS.successful and float(fine.growth_rate) < 0
+
+
+def test_instability_and_divergence_under_jit(drive, reference):
+    """Under jit and vmap the pole check still works (growth rate of the transition matrix),
+    and a run that leaves the error bound stops there with finite outputs."""
+    hot = _hot_pid(drive, 1.5)
+    twin = fdjax.TwinOptions(kept_modes=fdjax.count_modes(drive))
+    pos = jnp.array([0.1, Y_END])
+    stable = fdjax.check_stability(hot, drive, position_m=pos, servo=SERVO).stable
+    soft = fdjax.PIDLoop()
+    for method in (fdjax.SampledData(),):  # (PadeODE: same check, eager, test above)
+        sims = jax.jit(jax.vmap(lambda p, m=method: fdjax.simulate(
+            hot, drive, reference, m, servo=SERVO, position_m=p, duration=0.05,
+            twin=twin, throw=False)))(pos)
+        # the same verdict as the closed-loop poles of check_stability, position by position
+        np.testing.assert_array_equal(sims.result == fdjax.RESULTS.unstable,
+                                      ~np.asarray(stable))
+        np.testing.assert_array_equal(sims.result == fdjax.RESULTS.successful,
+                                      np.asarray(stable))
+        assert "unstable at table position 0.698 m: growing at" in sims.message
+        np.testing.assert_array_equal(np.asarray(sims.growth_rate) < 0, np.asarray(stable))
+        # a stable loop whose error leaves a (deliberately tiny) bound stops there
+        sim = jax.jit(lambda d, m=method: fdjax.simulate(
+            soft, d, reference, m, servo=SERVO, position_m=0.4, duration=0.05,
+            twin=twin, error_bound=1e-7, throw=False))(drive)
+        assert sim.result == fdjax.RESULTS.diverged
+        k = int(sim.failed_at)
+        assert 0 < k < sim.t.shape[0]
+        assert abs(float(sim.error_scale[k - 1])) <= 1e-7 < abs(float(sim.error_scale[k]))
+        np.testing.assert_array_equal(sim.x2[k:], sim.x2[k - 1])  # frozen, finite
+        assert "diverged" in sim.message and "table position 0.4 m" in sim.message
+    # with throw: one program for both failures (controller, position and bound as arguments)
+    run = jax.jit(lambda c, p, eb: fdjax.simulate(c, drive, reference, servo=SERVO,
+                                                  position_m=p, duration=0.05, twin=twin,
+                                                  error_bound=eb).x2)
+    with pytest.raises(Exception, match="the closed loop is unstable"):
+        jax.block_until_ready(run(hot, Y_END, 0.01))
+    with pytest.raises(Exception, match="the closed-loop run diverged"):
+        jax.block_until_ready(run(soft, 0.4, 1e-7))
+
+
+def test_gradients_match_central_differences(drive, mcm, reference):
+    """d RMS(e2)/d(controller and plant parameters), sampled and ODE paths."""
+    twin = fdjax.TwinOptions(kept_modes=fdjax.count_modes(drive))
+
+    def rms(p, method):
+        loop = fdjax.DoubleLoop(
+            kp=p["kp"], kv=p["kv"], ki=p["ki"], k_ffa=p["k_ffa"],
+            mcm=fdjax.MCM(fdjax.PeakFilter(p["K"], 2 * np.pi * 120.0, 0.15, p["phi"]),
+                          mcm.notch),
+        )
+        d = eqx.tree_at(lambda x: x.nut.stiffness, drive, p["k_nut"])
+        sim = fdjax.simulate(loop, d, reference, method, servo=SERVO, position_m=POS,
+                             duration=0.05, twin=twin, throw=False)
+        return sim.rms_error()
+
+    p0 = dict(kp=jnp.asarray(40.0), kv=jnp.asarray(1e3), ki=jnp.asarray(60.0),
+              k_ffa=jnp.asarray(0.3), K=jnp.asarray(0.3), phi=jnp.asarray(0.4),
+              k_nut=jnp.asarray(drive.nut.stiffness))
+    for method, names in ((fdjax.SampledData(), list(p0)),
+                          (fdjax.PadeODE(), ["kp", "K", "k_nut"])):
+        g = jax.jit(jax.grad(lambda p, m=method: rms(p, m)))(p0)
+        f = lambda p, m=method: rms(p, m)  # eager: the simulation's own compiled program
+        for k in names:
+            v = p0[k]
+            # central difference: truncation O(h²) ≈ 1e-7 relative; round-off of the loss
+            # (exp of the badly scaled Padé loop, ~1e-9 relative) / h stays below 1e-6
+            h = 3e-4 * abs(float(v))
+            fp = float(f({**p0, k: v + h}))
+            fm = float(f({**p0, k: v - h}))
+            fd = (fp - fm) / (2 * h)
+            assert abs(float(g[k]) - fd) <= 1e-5 * abs(fd) + 1e-9 * float(f(p0)) / abs(float(v)), (
+                type(method).__name__, k, float(g[k]), fd)
+
+
+def test_vmap_over_positions_equals_loop(drive, reference):
+    loop = table1_loop()
+    twin = fdjax.TwinOptions(kept_modes=fdjax.count_modes(drive))
+    pos = jnp.array([0.115, 0.4, Y_END])
+
+    def run(p):
+        return fdjax.simulate(loop, drive, reference, servo=SERVO, position_m=p,
+                              duration=0.03, twin=twin, throw=False)
+
+    batched = jax.vmap(run)(pos)
+    for i, p in enumerate(pos):
+        one = run(p)
+        np.testing.assert_allclose(batched.x2[i], one.x2, rtol=1e-12, atol=1e-18)
+    assert batched.x2.shape == (3, 601)
+    # inside jit the default duration is read from a closed-over trajectory's knots
+    short = jerk_limited(1e-4, 0.1, 2.0, 200.0)
+    x2 = jax.jit(lambda p: fdjax.simulate(loop, drive, short, servo=SERVO, position_m=p,
+                                          twin=twin, throw=False).x2)(0.3)
+    assert x2.shape == (round(float(short.duration) / DT) + 1,)
+
+
+def test_moving_table(drive):
+    """Moving table, continuous path: the exponential midpoint rule agrees with a stiff adaptive
+    solver (at rest it is the frozen loop on the same basis: the sampled test below)."""
+    loop = table1_loop()
+    fast = jerk_limited(0.02, 1.0, 20.0, 2.0e4)  # 20 mm at 20 m/s²: Y moves 1 mm in 10 ms
+    dur = 0.01
+    a = fdjax.simulate(loop, drive, fast, fdjax.PadeODE(), servo=SERVO, position_m=0.3,
+                       duration=dur, moving=True, twin=TWIN8)
+    t = jnp.arange(round(dur / DT) + 1, dtype=jnp.float64) * DT
+    b = fdjax.simulate(
+        loop, drive, fast,
+        fdjax.PadeODE(solver=diffrax.Kvaerno5(),
+                      stepsize_controller=diffrax.ClipStepSizeController(
+                          diffrax.PIDController(rtol=1e-9, atol=1e-13), step_ts=t)),
+        servo=SERVO, position_m=0.3, duration=dur, moving=True, twin=TWIN8,
+    )
+    assert float(a.position_m[-1]) > 0.3 + 5e-4  # it did move
+    assert _rel(a.error_scale, b.error_scale) < 1e-5
