@@ -137,14 +137,16 @@ def _point_checks(controllers, drive, ys, servo, f, twin, motion, duration):
     def one(args):
         c, y = args
         plant = state_space(drive, y, twin=twin)
-        st = check_stability(c, plant, servo=servo)
-        m = loop_margins(c, plant, f, servo=servo)
+        # one discrete law and one zero-order-hold plant for the poles, margins and run
+        method = SampledData().sharing(c, plant, servo)
+        st = check_stability(c, plant, servo=servo, method=method)
+        m = loop_margins(c, plant, f, servo=servo, method=method)
         out = {"growth": st.growth_rate, "stable": st.stable,
                "gm": _least(m, "gain_margin_db", absolute=True),
                "pm": _least(m, "phase_margin_deg", absolute=True),
                "mm": _least(m, "modulus_margin")}
         if motion is not None:
-            sim = simulate(c, plant, motion, SampledData(), servo=servo, duration=duration,
+            sim = simulate(c, plant, motion, method, servo=servo, duration=duration,
                            throw=False)
             out["rms"] = sim.rms_error("scale")
         return out
