@@ -81,14 +81,14 @@ class Objective(eqx.Module):
         margin_width: the margin penalties' width w: a design settles where the
             penalty's slope meets that of the error, a few w above each requirement.
         margin_sharpness: the smooth minimum's β over the grid (error ≤ log(n)/β).
-
-    The weights, ``error_scale_m``, ``margin_width`` and ``margin_sharpness`` are array leaves:
-    an objective with other values runs the programs compiled for the first.
         max_growth_rate: g_max (1/s), static: the least stable pole must decay at least at −g_max.
         current_limit_a: i_max (A), static.
         duration: simulated time (s), static; default the reference's duration.
         error_bound_m: a run whose error passes this bound (m) stops; an unstable or diverged
             run's tracking term is this bound over e_ref.
+
+    The weights, ``error_scale_m``, ``margin_width`` and ``margin_sharpness`` are array leaves:
+    an objective with other values runs the programs compiled for the first.
     """
 
     reference: Trajectory
