@@ -30,11 +30,15 @@ def growth_rate(Phi, h, squarings: int = 48):
     (first-order exact); the value is the squaring's."""
     P0 = jax.lax.stop_gradient(Phi)
     nrm = jnp.linalg.norm(P0)
-    M, log_s = P0 / nrm, jnp.log(nrm)
-    for _ in range(squarings):
+
+    def square(_, carry):
+        M, log_s = carry
         M = M @ M
         nrm = jnp.linalg.norm(M)
-        M, log_s = M / nrm, 2.0 * log_s + jnp.log(nrm)
+        return M / nrm, 2.0 * log_s + jnp.log(nrm)
+
+    # a loop, not unrolled: one squaring to compile instead of 48
+    M, log_s = jax.lax.fori_loop(0, squarings, square, (P0 / nrm, jnp.log(nrm)))
     value = log_s / (2.0**squarings * h)
     X = jax.lax.stop_gradient(M)
     XP = X @ Phi
@@ -70,28 +74,27 @@ def lifted_outputs(A, B, C, D, W, K: int = CHUNK):
     n, m = W.shape
     nb = -(-n // K)
     Wp = jnp.concatenate([W, jnp.zeros((nb * K - n, m))]).reshape(nb, K, m)
-    powers = [jnp.eye(A.shape[0])]
-    for _ in range(K):
-        powers.append(A @ powers[-1])
-    AK = powers[K]
+
+    def power(P, _):
+        return A @ P, P
+
+    AK, powers = jax.lax.scan(power, jnp.eye(A.shape[0]), None, length=K)  # A^K; A^0 … A^{K−1}
     # Input to block state: G = [A^{K−1}B, …, AB, B] (n × K·m).
-    G = jnp.concatenate([powers[K - 1 - i] @ B for i in range(K)], axis=1)
+    G = jnp.einsum("kij,jm->ikm", powers[::-1], B).reshape(A.shape[0], K * m)
     U = Wp.reshape(nb, K * m) @ G.T
 
     def body(s, u):
         return AK @ s + u, s
 
     S = jax.lax.scan(body, jnp.zeros(A.shape[0]), U)[1]  # state at each block's start
-    obs = jnp.stack([C @ powers[j] for j in range(K)])  # (K, p, n)
-    markov = [C @ powers[k] @ B for k in range(K)]  # C A^k B
+    obs = jnp.einsum("pi,kin->kpn", C, powers)  # (K, p, n): C A^j
+    markov = jnp.einsum("kpn,nm->kpm", obs, B)  # C A^k B
     p = C.shape[0]
-    zero = jnp.zeros((p, m))
-    T = jnp.block(
-        [
-            [D if i == j else markov[j - 1 - i] if i < j else zero for i in range(K)]
-            for j in range(K)
-        ]
-    )  # (K·p, K·m), block lower triangular
+    # T: (K·p, K·m), block lower triangular, block (j, i) = D (i = j), C A^{j−1−i} B (i < j)
+    j, i = jnp.arange(K)[:, None], jnp.arange(K)[None, :]
+    blocks = jnp.where((i < j)[:, :, None, None], markov[jnp.clip(j - 1 - i, 0, K - 1)], 0.0)
+    blocks = jnp.where((i == j)[:, :, None, None], D, blocks)
+    T = blocks.transpose(0, 2, 1, 3).reshape(K * p, K * m)
     Y = jnp.einsum("jon,cn->cjo", obs, S) + (Wp.reshape(nb, K * m) @ T.T).reshape(nb, K, p)
     finite = jnp.repeat(jnp.all(jnp.isfinite(S), axis=1), K)[:n]
     return Y.reshape(nb * K, p)[:n], finite

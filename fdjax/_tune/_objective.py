@@ -156,13 +156,13 @@ class Objective(eqx.Module):
                        duration=self.duration, error_bound=self.error_bound_m, throw=False)
         rms = sim.rms_error(self.output)
         loops = open_loop(controller, plant, self.freq_hz, servo=self.servo, method=method)
-        pen = sum(
-            margin_penalty(L, modulus_margin=self.modulus_margin,
-                           gain_margin_db=self.gain_margin_db,
-                           phase_margin_deg=self.phase_margin_deg,
-                           beta=self.margin_sharpness, width=self.margin_width)
-            for L in (loops.plant_input, loops.speed, loops.position) if L is not None
-        )
+        # the break points' loops as one batch: one penalty program for all of them
+        Ls = jnp.stack([L for L in (loops.plant_input, loops.speed, loops.position)
+                        if L is not None])
+        pen = jnp.sum(margin_penalty(Ls, modulus_margin=self.modulus_margin,
+                                     gain_margin_db=self.gain_margin_db,
+                                     phase_margin_deg=self.phase_margin_deg,
+                                     beta=self.margin_sharpness, width=self.margin_width))
         g = sim.growth_rate
         g_w = max(abs(self.max_growth_rate), 1.0)
         barrier = jax.nn.softplus((g - self.max_growth_rate) / g_w) ** 2
