@@ -230,3 +230,45 @@ def test_batch_covers_the_ends_and_one_position_per_stratum():
         np.testing.assert_array_equal(strata, np.arange(6))
     np.testing.assert_array_equal(batch_positions(jax.random.PRNGKey(0), (0.1, 0.7), 2),
                                   [0.1, 0.7])
+
+
+def test_trained_gains_stay_finite_after_a_step_of_any_length():
+    """The gains ``train_schedule(train_gains=True)`` trains are held within e^±30 of their
+    start: a step of 1e3 in ln k leaves k_ref e^30, finite and positive, and the loss the
+    optimiser sees is finite; inside the limit the gains are the trained ones bit for bit."""
+    from fdjax._tune._end_to_end import _EndToEndLoss, held_gains
+    from fdjax._tune._parameterisation import LOG_GAIN_LIMIT
+
+    drive = fdjax.reference_drive()
+    ref = fdjax.reference_controller(drive)
+    net = fdjax.ATANetwork((0.1, 0.7), width=4, key=jax.random.PRNGKey(5))
+    start = fdjax.ScheduledLoop(ref, net, BOUNDS)
+    gains = lambda s: (s.loop.log_kp, s.loop.log_kv, s.loop.log_ki)  # noqa: E731
+    reference = jnp.stack(gains(start))
+    step = jnp.array([1e3, -1e3, 0.25])
+    moved = eqx.tree_at(gains, start, tuple(reference + step))
+    held = held_gains(moved, reference)
+    np.testing.assert_array_equal(np.asarray(jnp.stack(gains(held))),
+                                  np.asarray(reference) + [LOG_GAIN_LIMIT, -LOG_GAIN_LIMIT, 0.25])
+    assert float(held.loop.log_ki) == float(moved.loop.log_ki)   # inside: untouched
+    k = np.array([float(held.loop.kp), float(held.loop.kv), float(held.loop.ki)])
+    assert np.all(np.isfinite(k)) and np.all(k > 0)
+    assert not np.isfinite(float(moved.loop.kp))                 # what the hold prevents
+
+    class GainSum(eqx.Module):     # a stand-in objective: J = k_p + k_v + k_i at Y
+        def __call__(self, controller, drive, position):
+            c = controller.controller(position)
+
+            class R(eqx.Module):
+                total: jax.Array
+            return R(c.kp * 1e-3 + c.kv * 1e-3 + c.ki * 1e-3)
+
+    spec = jax.tree_util.tree_map(lambda _: False, moved)
+    spec = eqx.tree_at(gains, spec, (True,) * 3)
+    params, static = eqx.partition(moved, spec)
+    loss = _EndToEndLoss(static, GainSum(), drive, jnp.array([0.1, 0.7]), reference,
+                         (0.1, 0.7), 2, 2.0)
+    value, worst = loss(params)
+    assert np.isfinite(float(value)) and np.isfinite(float(worst))
+    g = jax.grad(lambda p: loss(p)[0])(params)
+    assert all(np.all(np.isfinite(np.asarray(x))) for x in jax.tree_util.tree_leaves(g))

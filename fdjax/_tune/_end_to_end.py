@@ -29,9 +29,10 @@ from .._drive._model import BallScrewDrive
 from ._local import Descent, descend, smooth_max
 from ._objective import Objective
 from ._optimisers import default_optimiser
+from ._parameterisation import LOG_GAIN_LIMIT
 from ._schedule import ScheduledLoop
 
-__all__ = ["train_schedule", "batch_positions"]
+__all__ = ["train_schedule", "batch_positions", "held_gains"]
 
 
 def batch_positions(key: PRNGKeyArray, travel: tuple[float, float],
@@ -45,17 +46,34 @@ def batch_positions(key: PRNGKeyArray, travel: tuple[float, float],
     return jnp.concatenate([jnp.array([lo]), jnp.clip(inner, lo, hi), jnp.array([hi])])
 
 
+_GAINS = lambda s: (s.loop.log_kp, s.loop.log_kv, s.loop.log_ki)  # noqa: E731
+
+
+def held_gains(schedule: ScheduledLoop, reference: Float[Array, " 3"]) -> ScheduledLoop:
+    """The schedule with its loop's log gains held within ±``LOG_GAIN_LIMIT`` of
+    ``reference`` (ln k_p, ln k_v, ln k_i at the start of training): a trained gain is
+    k_ref e^{clip(ln k − ln k_ref, ±30)}, finite and positive after a step of any finite
+    length, and bit for bit the trained value inside the limit."""
+    raw = jnp.stack(_GAINS(schedule))
+    held = jnp.where(jnp.abs(raw - reference) <= LOG_GAIN_LIMIT, raw,
+                     reference + jnp.clip(raw - reference, -LOG_GAIN_LIMIT, LOG_GAIN_LIMIT))
+    return eqx.tree_at(_GAINS, schedule, tuple(held))
+
+
 class _EndToEndLoss(eqx.Module):
     static: ScheduledLoop
     objective: Objective
     drive: BallScrewDrive
     positions: Array | None
+    reference_gains: Array | None
     travel: tuple[float, float] = eqx.field(static=True)
     batch: int = eqx.field(static=True)
     sharpness: float = eqx.field(static=True)
 
     def __call__(self, params, key=None):
         schedule = eqx.combine(params, self.static)
+        if self.reference_gains is not None:
+            schedule = held_gains(schedule, self.reference_gains)
         y = self.positions if key is None else batch_positions(key, self.travel, self.batch)
         j = jax.vmap(lambda p: self.objective(schedule, self.drive, p).total)(y)
         return 0.5 * (jnp.mean(j) + smooth_max(j, self.sharpness)), jnp.max(j)
@@ -93,8 +111,10 @@ def train_schedule(
         optimiser: an optax transformation (default ``optax.adam(3e-3)``); a later call
             with the same object and shapes reuses the compiled steps.
         train_gains: also train the loop's feedback gains (k_p, k_v, k_i), common to every
-            position.  A network with gains (``ATANetwork(gains=True)``) schedules them over
-            the position through its own outputs, which are trained with its weights.
+            position, each held within e^±30 of its start (:func:`held_gains`), so that no
+            step of any length overflows it.  A network with gains (``ATANetwork(gains=True)``)
+            schedules them over the position through its own outputs, which are trained with
+            its weights.
         train_feedforward: also train its feed-forward gains (k_ffv, k_ffa); off, they keep
             their values (zero in a feedback-only loop), so that a feedback schedule is compared
             with feedback designs.
@@ -125,8 +145,7 @@ def train_schedule(
     spec = eqx.tree_at(lambda s: s.network, spec,
                        jax.tree_util.tree_map(eqx.is_inexact_array, schedule.network))
     if train_gains:
-        gains = lambda s: (s.loop.log_kp, s.loop.log_kv, s.loop.log_ki)  # noqa: E731
-        spec = eqx.tree_at(gains, spec, (True,) * 3)
+        spec = eqx.tree_at(_GAINS, spec, (True,) * 3)
     if train_feedforward:
         ff = lambda s: (s.loop.k_ffv, s.loop.k_ffa)  # noqa: E731
         spec = eqx.tree_at(ff, spec, (True,) * 2)
@@ -140,7 +159,8 @@ def train_schedule(
     else:
         fixed = None
     params, static = eqx.partition(schedule, spec)
-    loss = _EndToEndLoss(static, objective, drive, fixed,
+    reference = jnp.stack(_GAINS(schedule)) if train_gains else None
+    loss = _EndToEndLoss(static, objective, drive, fixed, reference,
                          tuple(float(v) for v in drive.travel_m), batch, float(sharpness))
     opt = default_optimiser("adam", 3e-3) if optimiser is None else optimiser
     if fixed is not None:
@@ -149,6 +169,7 @@ def train_schedule(
         key = jax.random.PRNGKey(0)
     res = descend(loss, params, opt, steps, chunk=chunk, key=key,
                   progress=fn if progress else None)
-    return eqx.combine(res.best, static), res
+    best = eqx.combine(res.best, static)
+    return (best if reference is None else held_gains(best, reference)), res
 
 
