@@ -149,6 +149,8 @@ def test_certify_is_loop_margins_and_stability_at_each_position():
             cert.gain_margin_db[k], min(abs(float(L.gain_margin_db)) for L in loops), rtol=1e-9)
     assert cert.ok == bool(np.all(cert.passed))
     assert ("certified at 3 positions" in cert.message) == cert.ok
+    y_gm, v_gm = cert.worst("gain_margin_db")
+    assert f"least gain margin {v_gm:.3g} dB at {y_gm * 1e3:.0f} mm (required 6 dB)" in cert.message
     # the reference controller held fixed fails toward the screw end (unstable from 0.5 m)
     bad = fdjax.certify(ref, drive, y, freq_hz=f)
     assert not bad.ok and not bool(bad.stable[-1])

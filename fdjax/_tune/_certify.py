@@ -85,10 +85,11 @@ class Certificate(eqx.Module):
             bad = self.positions_m[~self.stable]
             parts.append(f"unstable at {bad.size} positions, first {bad[0] * 1e3:.0f} mm, last "
                          f"{bad[-1] * 1e3:.0f} mm")
-        for what, unit, req in (("gain_margin_db", " dB", gm), ("phase_margin_deg", "°", pm),
-                                ("modulus_margin", "", mm)):
+        for what, label, unit, req in (("gain_margin_db", "gain margin", " dB", gm),
+                                       ("phase_margin_deg", "phase margin", "°", pm),
+                                       ("modulus_margin", "modulus margin", "", mm)):
             y, v = self.worst(what)
-            parts.append(f"least {what.replace('_', ' ')} {v:.3g}{unit} at {y * 1e3:.0f} mm "
+            parts.append(f"least {label} {v:.3g}{unit} at {y * 1e3:.0f} mm "
                          f"(required {req:g}{unit})")
         return "; ".join(parts)
 
