@@ -111,8 +111,8 @@ def train_schedule(
         optimiser: an optax transformation (default ``optax.adam(3e-3)``); a later call
             with the same object and shapes reuses the compiled steps.
         train_gains: also train the loop's feedback gains (k_p, k_v, k_i), common to every
-            position, each held within e^±30 of its start (:func:`held_gains`), so that no
-            step of any length overflows it.  A network with gains (``ATANetwork(gains=True)``)
+            position, each held within e^±30 of its start, so that no step of any length
+            overflows it.  A network with gains (``ATANetwork(gains=True)``)
             schedules them over the position through its own outputs, which are trained with
             its weights.
         train_feedforward: also train its feed-forward gains (k_ffv, k_ffa); off, they keep
