@@ -255,7 +255,7 @@ def test_trained_gains_stay_finite_after_a_step_of_any_length():
     assert np.all(np.isfinite(k)) and np.all(k > 0)
     assert not np.isfinite(float(moved.loop.kp))                 # what the hold prevents
 
-    class GainSum(eqx.Module):     # a stand-in objective: J = k_p + k_v + k_i at Y
+    class GainSum(eqx.Module):     # a stand-in objective: J = (k_p + k_v + k_i) / 1000 at Y
         def __call__(self, controller, drive, position):
             c = controller.controller(position)
 
