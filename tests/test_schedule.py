@@ -105,6 +105,16 @@ def test_filter_table_is_the_schedule_in_drive_units():
     np.testing.assert_allclose(table["notch_zeta_n"][3], float(m.notch.zeta_n[0]), rtol=1e-13)
     assert all(z_n < z_d for z_n, z_d in zip(table["notch_zeta_n"], table["notch_zeta_d"]))
     json.dumps(table)  # plain floats
+    # a position in mm is refused, eagerly and under jit (a network does not extrapolate)
+    msg = (r"`ScheduledLoop.controller\(position_m=\.\.\.\)` must be inside the network's "
+           r"travel \[0.1, 0.7\] m")
+    with pytest.raises(ValueError, match=msg + ", got 400"):
+        sched.controller(400.0)
+    with pytest.raises(Exception, match=msg):
+        eqx.filter_jit(lambda c, y: c.controller(y).mcm.peak.omega)(sched, jnp.asarray(400.0))
+    with pytest.raises(ValueError, match=r"`ScheduledLoop.filter_table\(positions_m=\.\.\.\)` "
+                                         r"must be inside the network's travel"):
+        sched.filter_table([0.1, 400.0])
 
 
 def test_a_network_with_gains_schedules_the_feedback_gains(tmp_path):

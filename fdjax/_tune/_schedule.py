@@ -33,6 +33,7 @@ import jax.numpy as jnp
 import optax
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
+from .. import _checks
 from .._control._controllers import AbstractController, DoubleLoop, Law
 from .._filters import MCM
 from ._optimisers import default_optimiser
@@ -159,7 +160,12 @@ class ScheduledLoop(AbstractController):
         self.bounds = bounds
 
     def controller(self, position_m: Float[ArrayLike, ""]) -> DoubleLoop:
-        """The fixed double loop the schedule runs at table position Y (m)."""
+        """The fixed double loop the schedule runs at table position Y (m), inside the travel
+        the network was built for (a network does not extrapolate)."""
+        lo, hi = self.network.travel_m
+        position_m = _checks.check(position_m, lambda p: (p >= lo) & (p <= hi),
+                                   "ScheduledLoop.controller(position_m=...)",
+                                   f"inside the network's travel [{lo:.6g}, {hi:.6g}] m")
         return _scheduled(self.loop, self.network, self.bounds, position_m)
 
     def filter_table(self, positions_m: Float[ArrayLike, " n"]) -> dict[str, list[float]]:
@@ -173,6 +179,10 @@ class ScheduledLoop(AbstractController):
         if y.ndim != 1:
             raise ValueError(f"`ScheduledLoop.filter_table(positions_m=...)` must be 1-D, got "
                              f"shape {y.shape}")
+        lo, hi = self.network.travel_m
+        y = _checks.check(y, lambda p: (p >= lo) & (p <= hi),
+                          "ScheduledLoop.filter_table(positions_m=...)",
+                          f"inside the network's travel [{lo:.6g}, {hi:.6g}] m")
         loops = jax.vmap(self.controller)(y)
         pk, nt = loops.mcm.peak, loops.mcm.notch
         cols = {
