@@ -64,6 +64,15 @@ def test_model_updating_recovers_known_parameters(drive):
     for p, v in zip(paths, true):
         np.testing.assert_allclose(res.parameters[p], v, rtol=1e-4, err_msg=p)
     assert np.all(res.within((1e-6, 1e-5, 1e-3)))
+    assert res.at_bound == {p: False for p in paths}
+    # the true nut stiffness above its upper bound: the fit ends on that bound, and says so
+    # (the same shapes: the compiled solve is reused)
+    low = dict(bounds, **{"nut.stiffness": (1e8, 5e8)})
+    capped = update_model(drive, data, low, 0.2, max_steps=100)
+    assert capped.at_bound == {"nut.stiffness": True, "carriage.pitch_stiffness": False,
+                               "rotary.coupling_damping": False}, capped.parameters
+    # measured 4.99999996e8 after 63 steps, with the solver reporting success
+    np.testing.assert_allclose(capped.parameters["nut.stiffness"], 5e8, rtol=1e-7)
 
 
 def test_update_model_bad_input(drive):

@@ -96,6 +96,9 @@ class ModelUpdate(eqx.Module):
         parameters: the fitted parameter values by path.
         steps: Levenberg–Marquardt steps taken.
         success: whether the solver converged.
+        at_bound: by path, whether the fitted value lies at one of its bounds (within 0.1 % of
+            the search range, in log space for positive bounds): the bound, not the data,
+            decides such a parameter; the solver may still report success.
     """
 
     drive: BallScrewDrive
@@ -108,6 +111,7 @@ class ModelUpdate(eqx.Module):
     parameters: dict
     steps: Array
     success: Array
+    at_bound: dict
 
     def within(self, tolerances=TOLERANCES) -> np.ndarray:
         """Boolean (3, n): which targets meet the given (frequency, damping, phase) tolerances."""
@@ -155,6 +159,15 @@ def _to_unit(value, lo, hi, log):
         x = (value - lo) / (hi - lo)
     x = np.clip(x, 1e-6, 1 - 1e-6)
     return np.log(x / (1 - x))
+
+
+def _at_bound(value: float, lo: float, hi: float, log: bool, room: float = 1e-3) -> bool:
+    """Whether ``value`` lies within ``room`` of the search range from a bound."""
+    if log:
+        x = (np.log(value) - np.log(lo)) / (np.log(hi) - np.log(lo))
+    else:
+        x = (value - lo) / (hi - lo)
+    return bool(x <= room or x >= 1 - room)
 
 
 def _from_unit(u, lo, hi, log: bool):
@@ -358,6 +371,7 @@ def update_model(
         fit=fit,
     )
     fitted, paired, r, steps, success = _update_jit(u0, data, solver, max_steps)
+    values = {p: float(_getter(p)(fitted)) for p in paths}
     return ModelUpdate(
         drive=fitted,
         modes=paired,
@@ -365,7 +379,9 @@ def update_model(
         residual=r,
         **dict(zip(("frequency_error", "damping_error", "phase_error_deg"),
                    modal_errors(paired, target))),
-        parameters={p: float(_getter(p)(fitted)) for p in paths},
+        parameters=values,
         steps=steps,
         success=success,
+        at_bound={p: _at_bound(values[p], lo, hi, lg)
+                  for p, (lo, hi), lg in zip(paths, bounds, log)},
     )
