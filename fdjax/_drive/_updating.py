@@ -152,21 +152,22 @@ def _getter(path: str):
     return operator.attrgetter(path)
 
 
-def _to_unit(value, lo, hi, log):
+def _fraction(value, lo, hi, log):
+    """Where ``value`` lies in its search range: 0 at ``lo``, 1 at ``hi`` (in log space for
+    positive bounds)."""
     if log:
-        x = (np.log(value) - np.log(lo)) / (np.log(hi) - np.log(lo))
-    else:
-        x = (value - lo) / (hi - lo)
-    x = np.clip(x, 1e-6, 1 - 1e-6)
+        return (np.log(value) - np.log(lo)) / (np.log(hi) - np.log(lo))
+    return (value - lo) / (hi - lo)
+
+
+def _to_unit(value, lo, hi, log):
+    x = np.clip(_fraction(value, lo, hi, log), 1e-6, 1 - 1e-6)
     return np.log(x / (1 - x))
 
 
 def _at_bound(value: float, lo: float, hi: float, log: bool, room: float = 1e-3) -> bool:
     """Whether ``value`` lies within ``room`` of the search range from a bound."""
-    if log:
-        x = (np.log(value) - np.log(lo)) / (np.log(hi) - np.log(lo))
-    else:
-        x = (value - lo) / (hi - lo)
+    x = _fraction(value, lo, hi, log)
     return bool(x <= room or x >= 1 - room)
 
 

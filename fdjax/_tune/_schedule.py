@@ -159,13 +159,16 @@ class ScheduledLoop(AbstractController):
         self.network = network
         self.bounds = bounds
 
+    def _in_travel(self, position_m, where: str):
+        """``position_m`` checked inside the network's travel (guarded when traced)."""
+        lo, hi = self.network.travel_m
+        return _checks.check(position_m, lambda p: (p >= lo) & (p <= hi), where,
+                             f"inside the network's travel [{lo:.6g}, {hi:.6g}] m")
+
     def controller(self, position_m: Float[ArrayLike, ""]) -> DoubleLoop:
         """The fixed double loop the schedule runs at table position Y (m), inside the travel
         the network was built for (a network does not extrapolate)."""
-        lo, hi = self.network.travel_m
-        position_m = _checks.check(position_m, lambda p: (p >= lo) & (p <= hi),
-                                   "ScheduledLoop.controller(position_m=...)",
-                                   f"inside the network's travel [{lo:.6g}, {hi:.6g}] m")
+        position_m = self._in_travel(position_m, "ScheduledLoop.controller(position_m=...)")
         return _scheduled(self.loop, self.network, self.bounds, position_m)
 
     def filter_table(self, positions_m: Float[ArrayLike, " n"]) -> dict[str, list[float]]:
@@ -179,10 +182,7 @@ class ScheduledLoop(AbstractController):
         if y.ndim != 1:
             raise ValueError(f"`ScheduledLoop.filter_table(positions_m=...)` must be 1-D, got "
                              f"shape {y.shape}")
-        lo, hi = self.network.travel_m
-        y = _checks.check(y, lambda p: (p >= lo) & (p <= hi),
-                          "ScheduledLoop.filter_table(positions_m=...)",
-                          f"inside the network's travel [{lo:.6g}, {hi:.6g}] m")
+        y = self._in_travel(y, "ScheduledLoop.filter_table(positions_m=...)")
         loops = jax.vmap(self.controller)(y)
         pk, nt = loops.mcm.peak, loops.mcm.notch
         cols = {
