@@ -13,7 +13,9 @@ j_max=400.0, cycles=1)``, margins on 400 log-spaced frequencies 5–3900 Hz, twi
    ``--lbfgs-steps`` steps; each line-search trial is an evaluation of J and its gradient).
    Compilation is timed separately (a warm-up call of one chunk; the main call then reuses
    the compiled chunk); the time per step is the main call's average (its wall time less the
-   final evaluation of the terms).
+   final evaluation of the terms).  ``fdjax.tune_newton`` (``--newton-steps`` trust-region
+   Newton steps with the exact Hessian, all six positions in one vmapped program; one
+   evaluation of J, its gradient and its Hessian per step; a warm-up call of 2 steps compiles).
 2. ``derivative_free``: ``scipy.optimize.minimize(method="Nelder-Mead", adaptive=True)`` on θ
    per position, one position after the other, J a jitted function of (θ, Y) (compiled once,
    outside the timing), initial simplex θ0 + 0.1·e_k, at most ``--maxfev`` evaluations.
@@ -30,7 +32,8 @@ derivative-free tuner to reach its result, six local tunings within 60 s after c
 4. ``end_to_end``: ``fdjax.train_schedule`` (network and common gains, 8 positions per step)
    from a network fitted to the start's MCM: compile time, time per step, simulations.
 
-Usage:  python benchmarks/tuning.py [--steps 300] [--lbfgs-steps 100] [--maxfev 1500]
+Usage:  python benchmarks/tuning.py [--steps 300] [--lbfgs-steps 100] [--newton-steps 60]
+        [--maxfev 1500]
         [--e2e-steps 100] [--quick] [--out benchmarks/results/tuning.json]
 """
 
@@ -112,9 +115,47 @@ def gradient_local(par, obj, drive, positions, start, steps, method="adam"):
     return {
         "steps": int(steps), "chunk": CHUNK,
         "optimiser": f"optax.adam({LEARNING_RATE})" if method == "adam" else "optax.lbfgs()",
+        "tuner": "tune_local", "sims_per_evaluation": SIMS_PER_GRADIENT_STEP,
         "evaluations": np.asarray(r.evaluations),
         "compile_s": compile_s, "warmup_call_s": warm_s, "main_call_wall_s": wall_s,
         "steps_s": steps_s, "final_terms_s": terms_s,
+        "seconds_per_step": per_step, "steps_per_second": 1.0 / per_step,
+        "history": h, "best_theta": np.asarray(r.best_theta),
+        "j_best": np.asarray(r.terms.total), "stable_terms": np.asarray(r.terms.stable),
+        "rms_error_m": np.asarray(r.terms.rms_error_m),
+        "margin_penalty": np.asarray(r.terms.margin_penalty),
+        "growth_rate": np.asarray(r.terms.growth_rate),
+        "peak_current_a": np.asarray(r.terms.peak_current_a),
+        "finite_history": bool(np.all(np.isfinite(h))),
+    }
+
+
+def newton_local(par, obj, drive, positions, start, steps):
+    """fdjax.tune_newton: one evaluation of J with its gradient and Hessian per step and
+    position.  A warm-up call of 2 steps compiles the programs; the main call is timed whole,
+    its final terms apart; the start's evaluation counts as a step (history row 0)."""
+    t0 = time.perf_counter()
+    warm = fdjax.tune_newton(par, obj, drive, positions, start, steps=2)
+    jax.block_until_ready(warm.history)
+    warm_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    r = fdjax.tune_newton(par, obj, drive, positions, start, steps=steps)
+    jax.block_until_ready((r.history, r.terms.total))
+    wall_s = time.perf_counter() - t0
+    terms_s, _ = median_time(lambda: jax.vmap(
+        lambda th, p: obj(par.to_controller(th), drive, p).total)(r.best_theta, r.positions_m),
+        3, warmup=False)
+    steps_s = max(wall_s - terms_s, 0.0)
+    per_step = steps_s / (steps + 1)
+    h = np.asarray(r.history)
+    n_par = len(par.names)
+    return {
+        "steps": int(steps), "chunk": 1, "tuner": "tune_newton",
+        "optimiser": "trust-region Newton, exact Hessian (radius 0.3, shrink 0.25)",
+        "sims_per_evaluation": 2 + 2 * n_par,
+        "evaluations": np.ones_like(h, dtype=int),
+        "compile_s": max(warm_s - 3 * per_step - terms_s, 0.0), "warmup_call_s": warm_s,
+        "main_call_wall_s": wall_s, "steps_s": steps_s, "final_terms_s": terms_s,
         "seconds_per_step": per_step, "steps_per_second": 1.0 / per_step,
         "history": h, "best_theta": np.asarray(r.best_theta),
         "j_best": np.asarray(r.terms.total), "stable_terms": np.asarray(r.terms.stable),
@@ -201,8 +242,9 @@ def verify(par, drive, positions, thetas):
 
 def _sims(grad):
     """Simulation equivalents spent up to each step, per position: 2 per evaluation of J
-    with its gradient (one forward, one reverse pass)."""
-    return SIMS_PER_GRADIENT_STEP * np.cumsum(np.asarray(grad["evaluations"]), axis=0)
+    with its gradient (one forward, one reverse pass), 2 + 2p with its Hessian too (p
+    forward-over-reverse columns)."""
+    return grad["sims_per_evaluation"] * np.cumsum(np.asarray(grad["evaluations"]), axis=0)
 
 
 def compare(grad, nm, positions):
@@ -277,7 +319,8 @@ def _f(x, fmt):
     return "not reached" if x is None else format(x, fmt)
 
 
-METHODS = {"adam": f"Adam({LEARNING_RATE})", "lbfgs": "L-BFGS (optax.lbfgs, zoom line search)"}
+METHODS = {"adam": f"Adam({LEARNING_RATE})", "lbfgs": "L-BFGS (optax.lbfgs, zoom line search)",
+           "newton": "trust-region Newton with the exact Hessian (fdjax.tune_newton)"}
 
 
 def markdown(result):
@@ -303,6 +346,9 @@ def markdown(result):
         f"with its gradient at one position = {SIMS_PER_GRADIENT_STEP} simulation equivalents "
         "(1 forward + 1 reverse pass): one per Adam step, one per line-search trial of L-BFGS "
         "(its accepted trial's value and gradient are the next step's), plus the start's.  "
+        "One evaluation of J with its gradient and its Hessian (12 forward-over-reverse "
+        "columns) = 2 + 2·12 = 26 (trust-region Newton, one per step, the start's counted "
+        "as a step).  "
         "\"Steps to reach\" = the first step at which the running minimum of the gradient "
         "history is ≤ Nelder-Mead's best J at that position; Nelder-Mead is charged its "
         "evaluations (and wall time) up to its own best, not its whole budget.  Gradient "
@@ -325,12 +371,13 @@ def _method_markdown(method, m, n_pos):
     g, t, rows = m["gradient"], m["totals"], m["per_position"]
     lines = [
         "", f"## Gradient: {METHODS[method]}", "",
-        f"`tune_local`, {g['steps']} steps of {g['optimiser']}, all positions in one vmapped "
+        f"`{g['tuner']}`, {g['steps']} steps of {g['optimiser']}, all positions in one vmapped "
         f"program; compile {g['compile_s']:.1f} s, {g['seconds_per_step'] * 1e3:.0f} ms "
         f"per step ({g['steps_per_second']:.2f} steps/s, {n_pos} positions per step), "
         f"{g['steps_s']:.1f} s for all steps after compilation (+ {g['final_terms_s']:.1f} s "
-        "for tune_local's final terms); "
-        f"{int(np.sum(g['evaluations']))} evaluations of J with its gradient in all.",
+        f"for {g['tuner']}'s final terms); "
+        f"{int(np.sum(g['evaluations']))} evaluations of J with its derivatives in all "
+        f"({g['sims_per_evaluation']} simulation equivalents each).",
         "",
         "| position | J start | J gradient best | J NM best | NM evals (to best) | NM s (to best) "
         "| grad steps to reach | grad sims to reach | grad s to reach | sims ratio |",
@@ -390,6 +437,7 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--steps", type=int, default=300, help="Adam steps")
     ap.add_argument("--lbfgs-steps", type=int, default=100, help="L-BFGS steps")
+    ap.add_argument("--newton-steps", type=int, default=60, help="trust-region Newton steps")
     ap.add_argument("--maxfev", type=int, default=1500)
     ap.add_argument("--e2e-steps", type=int, default=100,
                     help="end-to-end training steps (batch of 8 positions)")
@@ -400,6 +448,7 @@ def main():
     args = ap.parse_args()
     if args.quick:
         args.steps, args.lbfgs_steps, args.maxfev, args.e2e_steps = 60, 20, 200, 50
+        args.newton_steps = 10
 
     load0 = loadavg()
     drive, par, obj, positions, start = setup(2 if args.quick else 6)
@@ -408,6 +457,9 @@ def main():
         grads[method] = gradient_local(par, obj, drive, positions, start, steps, method)
         print(method, {k: v for k, v in grads[method].items()
                        if not isinstance(v, np.ndarray)}, flush=True)
+    grads["newton"] = newton_local(par, obj, drive, positions, start, args.newton_steps)
+    print("newton", {k: v for k, v in grads["newton"].items()
+                     if not isinstance(v, np.ndarray)}, flush=True)
     nm = derivative_free(par, obj, drive, positions, start, args.maxfev)
     print("nelder-mead", [(d["position_m"], d["j_best"], d["evals"], d["seconds"])
                           for d in nm["positions"]], flush=True)

@@ -157,6 +157,7 @@ _EXPORTS = {
         "LocalTuning",
         "tune_local",
         "tune_simplex",
+        "tune_newton",
         "AbstractParameterisation",
         "PIDParameterisation",
         "PID_PARAMETERS",
@@ -362,5 +363,6 @@ if TYPE_CHECKING:
         tune_local as tune_local,
         tune_robust as tune_robust,
         tune_shared_gains as tune_shared_gains,
+        tune_newton as tune_newton,
         tune_simplex as tune_simplex,
     )

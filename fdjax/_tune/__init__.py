@@ -11,6 +11,8 @@ steps cannot break.
 * ``_local``: :func:`tune_local`, one design per table position in one ``vmap``-ed optax run;
   :func:`tune_robust` (one design for all positions), :func:`tune_shared_gains` (one gain set,
   one MCM per position); :func:`descend`, the optax loop they share.
+* ``_newton``: :func:`tune_newton`, trust-region Newton steps with the exact Hessian per
+  position in one ``vmap`` (:func:`trust_region_step`, the exact subproblem).
 * ``_simplex``: :func:`tune_simplex`, the adaptive Nelder–Mead simplex per position in one
   ``vmap`` (a derivative-free search for the basin that the gradient then refines).
 * ``_end_to_end``: :func:`train_schedule`, the network trained against the objective itself.
@@ -66,6 +68,7 @@ from ._schedule import (
     load_schedule as load_schedule,
     save_schedule as save_schedule,
 )
+from ._newton import trust_region_step as trust_region_step, tune_newton as tune_newton
 from ._simplex import tune_simplex as tune_simplex
 from ._synthesis import (
     CONTROLLERS as CONTROLLERS,
