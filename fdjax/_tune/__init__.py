@@ -40,6 +40,7 @@ from ._local import (
     tune_robust as tune_robust,
     tune_shared_gains as tune_shared_gains,
 )
+from ._newton import trust_region_step as trust_region_step, tune_newton as tune_newton
 from ._objective import (
     Objective as Objective,
     ObjectiveTerms as ObjectiveTerms,
@@ -68,7 +69,6 @@ from ._schedule import (
     load_schedule as load_schedule,
     save_schedule as save_schedule,
 )
-from ._newton import trust_region_step as trust_region_step, tune_newton as tune_newton
 from ._simplex import tune_simplex as tune_simplex
 from ._synthesis import (
     CONTROLLERS as CONTROLLERS,

@@ -139,7 +139,9 @@ def tune_newton(
     of the simulation's cost, p = 12 for :class:`fdjax.DoubleLoopParameterisation`).  On the
     12-parameter local problem it reaches lower objectives than first-order steps and than the
     adaptive simplex (``benchmarks/tuning.py``); for many parameters (a network) use
-    :func:`fdjax.train_schedule`.
+    :func:`fdjax.train_schedule`.  The Hessian is exact for the tracking error and the margin
+    penalties; the growth-rate barrier's second derivative holds the dominant eigenspace
+    fixed (its gradient is exact), which the acceptance test ρ absorbs.
 
     Args:
         parameterisation, objective, drive, positions_m, start: as :func:`fdjax.tune_local`.
