@@ -10,8 +10,8 @@ results (``benchmarks/results/tuning.json``) and, at one position (default 0.1 m
   them, i.e. another basin, or is the segment downhill?);
 * the spectrum of the Hessian ∇²J at L-BFGS's design (``jax.hessian``, forward over reverse):
   its condition and its negative curvature;
-* what trust-region Newton steps with that exact Hessian make of the valley
-  (``fdjax.trust_region_step``; ``fdjax.tune_newton`` runs them from the start).
+* what trust-region Newton steps with that exact Hessian (``fdjax.tune_newton``) make of
+  the valley.
 
 About 3 minutes on 2 cores (the Hessian's program takes most of it to compile).
 
@@ -94,30 +94,16 @@ def main():
     pos = w[w > 0]
     print(f"  positive ones span {pos.max() / pos.min():.3g}; {int(np.sum(w < 0))} negative")
     # trust-region Newton steps with that exact Hessian from L-BFGS's design
-    # (fdjax.trust_region_step: the exact subproblem; radius 0.3, shrunk to a quarter of the
-    # step when the model predicts badly, doubled when it predicts well on the boundary)
-    x, newton, delta = theta["lbfgs"].copy(), [], 0.3
-    v, g = value_and_grad(jnp.asarray(x))
-    hh = np.asarray(hess(jnp.asarray(x)))
-    for _ in range(args.newton_steps):
-        step, pred = fdjax.trust_region_step(g, hh, delta)
-        step = np.asarray(step)
-        vt = float(value_and_grad(jnp.asarray(x + step))[0])
-        rho = (float(v) - vt) / float(pred) if float(pred) > 0 else -1.0
-        size = float(np.linalg.norm(step))
-        if rho < 0.25:
-            delta = 0.25 * size
-        elif rho > 0.75 and size > 0.8 * delta:
-            delta = min(2 * delta, 5.0)
-        if rho > 1e-4:
-            x = x + step
-            v, g = value_and_grad(jnp.asarray(x))
-            hh = np.asarray(hess(jnp.asarray(x)))
-        newton.append(float(v))
+    r_newton = fdjax.tune_newton(par, obj, drive, np.array([y]), theta["lbfgs"],
+                                 steps=args.newton_steps)
+    trials = np.asarray(r_newton.history)[:, 0]
+    newton = np.minimum.accumulate(trials)[1:].tolist()  # J of the accepted point per step
     out["trust_region_newton_from_lbfgs"] = newton
+    nm_best = out["designs"]["nelder_mead"]["J"]
+    below = [k + 1 for k, v in enumerate(newton) if v <= nm_best]
     print(f"  {args.newton_steps} trust-region Newton steps from L-BFGS's design: J "
-          f"{out['designs']['lbfgs']['J']:.4f} → {newton[-1]:.4f} (Nelder–Mead's best "
-          f"{out['designs']['nelder_mead']['J']:.4f})")
+          f"{out['designs']['lbfgs']['J']:.4f} → {newton[-1]:.4f}; Nelder–Mead's best "
+          f"{nm_best:.4f} " + (f"passed at step {below[0]}" if below else "not reached"))
     if args.out:
         with open(args.out, "w") as fh:
             json.dump(out, fh, indent=2)

@@ -117,13 +117,19 @@ def tune_local(
             h = history[-1][-1]
             print(f"{fn}: step {done}/{steps}, J mean {np.mean(h):.4g}, max {np.max(h):.4g}",
                   file=sys.stderr, flush=True)
-    terms = jax.vmap(lambda th, p: objective(parameterisation.to_controller(th), drive, p))(
-        best, y)
+    terms = _terms_at(parameterisation, objective, drive, best, y)
     evaluations = np.concatenate(evaluations)
     if optax.tree_utils.tree_get(state, "grad") is not None:
         evaluations[0] += 1  # a line search's start: evaluated once before its first trial
     return LocalTuning(y, theta, best, jnp.asarray(np.concatenate(history)), terms, t_steps,
                        jnp.asarray(evaluations))
+
+
+@eqx.filter_jit
+def _terms_at(par, objective, drive, theta, y):
+    """The objective's terms of the designs ``theta`` (n, p) at the positions ``y`` (n,), one
+    compiled program (a later call with new values compiles nothing)."""
+    return jax.vmap(lambda th, p: objective(par.to_controller(th), drive, p))(theta, y)
 
 
 def _all_finite(tree):
@@ -460,6 +466,5 @@ def tune_shared_gains(
 
     best = rows(res.best)
     y = jnp.asarray(pos)
-    terms = jax.vmap(lambda th, p: objective(parameterisation.to_controller(th), drive, p))(
-        best, y)
+    terms = _terms_at(parameterisation, objective, drive, best, y)
     return LocalTuning(y, rows(res.params), best, res.aux, terms, res.seconds)

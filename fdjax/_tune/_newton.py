@@ -29,7 +29,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .._drive._model import BallScrewDrive
-from ._local import LocalTuning, _check_common, _start
+from ._local import LocalTuning, _check_common, _start, _terms_at
 from ._objective import Objective
 from ._parameterisation import AbstractParameterisation
 
@@ -187,7 +187,6 @@ def tune_newton(
                   file=sys.stderr, flush=True)
     if steps > 1:  # the first step's time, at the others' rate
         t_steps *= steps / (steps - 1)
-    terms = jax.vmap(lambda th, p: objective(parameterisation.to_controller(th), drive, p))(
-        theta, y)
+    terms = _terms_at(parameterisation, objective, drive, theta, y)
     return LocalTuning(y, theta, theta, jnp.asarray(np.stack(history)), terms, t_steps,
                        jnp.ones((steps, pos.size), jnp.int32))

@@ -27,7 +27,7 @@ import numpy as np
 from jaxtyping import ArrayLike, Float
 
 from .._drive._model import BallScrewDrive
-from ._local import LocalTuning, _check_common, _settled, _start
+from ._local import LocalTuning, _check_common, _settled, _start, _terms_at
 from ._objective import Objective
 from ._parameterisation import AbstractParameterisation
 
@@ -190,6 +190,5 @@ def tune_simplex(
             print(f"{fn}: evaluation {done}/{evaluations}, best J mean {np.mean(b):.4g}, "
                   f"max {np.max(b):.4g}", file=sys.stderr, flush=True)
     best = state.best_x
-    terms = jax.vmap(lambda th, p: objective(parameterisation.to_controller(th), drive, p))(
-        best, y)
+    terms = _terms_at(parameterisation, objective, drive, best, y)
     return LocalTuning(y, best, best, jnp.asarray(np.concatenate(history)), terms, t_steps)
