@@ -14,7 +14,10 @@ is solved exactly from the eigen-decomposition H = V diag(w) Vᵀ: p(λ) = −V 
 max(0, −w_min) with ‖p(λ)‖ = Δ (bisection in log λ), plus a component along the eigenvector of
 w_min in the "hard case" (Moré & Sorensen 1983).  The step is accepted when the actual decrease
 is more than 10⁻⁴ of the model's, ρ = (J(θ) − J(θ + p)) / (−g·p − ½ pᵀHp); the radius shrinks to
-a fraction of ‖p‖ when ρ < 1/4 and doubles when ρ > 3/4 on the region's edge.
+a fraction of ‖p‖ when ρ < 1/4 and doubles when ρ > 3/4 on the region's edge.  The exact
+Hessian costs p forward-over-reverse columns; with ``hessian_every`` = m it is evaluated every
+m-th step only and updated between by the symmetric rank-one (SR1) formula from the steps and
+the gradients.
 """
 
 from __future__ import annotations
@@ -96,13 +99,32 @@ def _evaluate(par, objective, drive, y, theta):
     return jax.vmap(one)(theta, y)
 
 
+@eqx.filter_jit
+def _value_and_gradient(par, objective, drive, y, theta):
+    """J and ∇J at every position (the steps between exact Hessians)."""
+    return jax.vmap(jax.value_and_grad(
+        lambda th, p: objective(par.to_controller(th), drive, p).total))(theta, y)
+
+
+def _sr1(H, s, y):
+    """The symmetric rank-one update of H with the step s and the change of gradient y,
+    H + r rᵀ/(r·s), r = y − H s; skipped when |r·s| ≤ 1e-8 ‖r‖ ‖s‖ (or not finite)."""
+    r = y - H @ s
+    den = r @ s
+    ok = jnp.isfinite(den) & (jnp.abs(den) > 1e-8 * jnp.linalg.norm(r) * jnp.linalg.norm(s))
+    return jnp.where(ok, H + jnp.outer(r, r) / jnp.where(ok, den, 1.0), H)
+
+
 @jax.jit
 def _propose(g, H, delta):
     return jax.vmap(trust_region_step)(g, H, delta)
 
 
 @jax.jit
-def _accept(theta, j, g, H, delta, step, pred, j_t, g_t, H_t, shrink, max_radius):
+def _accept(theta, j, g, H, delta, step, pred, j_t, g_t, H_t, shrink, max_radius, exact,
+            quasi):
+    """The trial's verdict and the new radius; the model's Hessian: the trial's exact one
+    where ``exact`` and the step is accepted, else the SR1 update where ``quasi``."""
     ok = jnp.isfinite(j_t) & jnp.all(jnp.isfinite(g_t), axis=1) & jnp.all(
         jnp.isfinite(H_t), axis=(1, 2))
     rho = jnp.where(ok & (pred > 0), (j - j_t) / jnp.where(pred > 0, pred, 1.0), -1.0)
@@ -112,7 +134,9 @@ def _accept(theta, j, g, H, delta, step, pred, j_t, g_t, H_t, shrink, max_radius
                                 jnp.minimum(2.0 * delta, max_radius), delta))
     acc = rho > _ACCEPT
     pick = lambda a, b: jnp.where(acc.reshape(acc.shape + (1,) * (a.ndim - 1)), a, b)  # noqa: E731
-    return (pick(theta + step, theta), pick(j_t, j), pick(g_t, g), pick(H_t, H),
+    H_q = jnp.where(quasi, jax.vmap(_sr1)(H, step, g_t - g), H)
+    H_new = jnp.where((exact & acc)[:, None, None], H_t, H_q)
+    return (pick(theta + step, theta), pick(j_t, j), pick(g_t, g), H_new,
             jnp.maximum(delta, 1e-12), acc)
 
 
@@ -127,6 +151,7 @@ def tune_newton(
     radius: float = 0.3,
     max_radius: float = 5.0,
     shrink: float = 0.25,
+    hessian_every: int = 1,
     progress: bool = False,
 ) -> LocalTuning:
     r"""Tune one controller per table position by trust-region Newton steps with the exact
@@ -149,13 +174,19 @@ def tune_newton(
         radius: the initial trust radius Δ in θ (> 0; θ is of order one).
         max_radius: the largest trust radius (≥ ``radius``).
         shrink: a rejected or poor step (ρ < 1/4) sets Δ to ``shrink``·‖p‖ (0 < shrink < 1).
+        hessian_every: the exact Hessian at the start and at the trial of every
+            ``hessian_every``-th step (steps k = m, 2m, …); the other steps evaluate J and its
+            gradient only (2 passes instead of 2p + 2) and update the model's Hessian by the
+            symmetric rank-one formula H + r rᵀ/(r·s), r = Δ∇J − H s, s the step (SR1 keeps
+            the negative curvature a trust region uses).  1: the exact Hessian every step.
         progress: print the objective's mean and max every 10 steps (to stderr).
 
     Returns:
         A :class:`fdjax.LocalTuning`: ``theta`` and ``best_theta`` the accepted point (the
         lowest J seen), ``history`` J at the start and at every step's trial point, (steps + 1,
-        n), ``evaluations`` ones, (steps, n) (one evaluation with gradient and Hessian per step
-        and position), ``seconds`` the steps' wall time after the first, which compiles.
+        n), ``evaluations`` ones, (steps, n) (one evaluation with the gradient per step and
+        position, and the Hessian on every ``hessian_every``-th), ``seconds`` the steps' wall
+        time after the first, which compiles.
     """
     fn = "tune_newton"
     pos = _check_common(fn, parameterisation, objective, drive, positions_m, steps, 1)
@@ -165,6 +196,9 @@ def tune_newton(
             ("shrink", shrink, lambda v: 0 < v < 1, "a number in (0, 1)")):
         if not (isinstance(value, (int, float)) and np.isfinite(value) and ok(value)):
             raise ValueError(f"`{fn}({name}=...)` must be {want}, got {value!r}")
+    if not (isinstance(hessian_every, int) and hessian_every >= 1):
+        raise ValueError(f"`{fn}(hessian_every=...)` must be a positive int, got "
+                         f"{hessian_every!r}")
     theta = jnp.asarray(_start(fn, parameterisation, start, pos.size))
     y = jnp.asarray(pos)
     j, g, H = _evaluate(parameterisation, objective, drive, y, theta)
@@ -172,12 +206,18 @@ def tune_newton(
     shrink_, max_r = jnp.asarray(float(shrink)), jnp.asarray(float(max_radius))
     history = [np.asarray(j)]
     t_steps = 0.0
+    quasi = jnp.asarray(hessian_every > 1)
     for k in range(steps):
         t0 = time.perf_counter()
         step, pred = _propose(g, H, delta)
-        j_t, g_t, H_t = _evaluate(parameterisation, objective, drive, y, theta + step)
+        exact = (k + 1) % hessian_every == 0
+        if exact:
+            j_t, g_t, H_t = _evaluate(parameterisation, objective, drive, y, theta + step)
+        else:
+            j_t, g_t = _value_and_gradient(parameterisation, objective, drive, y, theta + step)
+            H_t = H
         theta, j, g, H, delta, _ = _accept(theta, j, g, H, delta, step, pred, j_t, g_t, H_t,
-                                           shrink_, max_r)
+                                           shrink_, max_r, jnp.asarray(exact), quasi)
         history.append(np.asarray(j_t))  # waits for the step
         if k > 0:  # the first step compiles the step's small programs
             t_steps += time.perf_counter() - t0
@@ -185,7 +225,7 @@ def tune_newton(
             jj = np.asarray(j)
             print(f"{fn}: step {k + 1}/{steps}, J mean {np.mean(jj):.4g}, max {np.max(jj):.4g}",
                   file=sys.stderr, flush=True)
-    if steps > 1:  # the first step's time, at the others' rate
+    if steps > 1:  # the first step's time, at the others' rate (an average over both kinds)
         t_steps *= steps / (steps - 1)
     terms = _terms_at(parameterisation, objective, drive, theta, y)
     return LocalTuning(y, theta, theta, jnp.asarray(np.stack(history)), terms, t_steps,
