@@ -86,6 +86,22 @@ def setup(n_positions=6):
     return drive, par, obj, positions, start
 
 
+def _outcome(r, per_step):
+    """A tuner's run (a LocalTuning) as the benchmark records it: the time per step, the
+    history and the best designs' terms."""
+    h = np.asarray(r.history)
+    return {
+        "seconds_per_step": per_step, "steps_per_second": 1.0 / per_step,
+        "history": h, "best_theta": np.asarray(r.best_theta),
+        "j_best": np.asarray(r.terms.total), "stable_terms": np.asarray(r.terms.stable),
+        "rms_error_m": np.asarray(r.terms.rms_error_m),
+        "margin_penalty": np.asarray(r.terms.margin_penalty),
+        "growth_rate": np.asarray(r.terms.growth_rate),
+        "peak_current_a": np.asarray(r.terms.peak_current_a),
+        "finite_history": bool(np.all(np.isfinite(h))),
+    }
+
+
 # ----------------------------------------------------------------------------- gradient
 def gradient_local(par, obj, drive, positions, start, steps, method="adam"):
     """tune_local with compile time, time per step, the history of J and the evaluations of
@@ -114,7 +130,6 @@ def gradient_local(par, obj, drive, positions, start, steps, method="adam"):
     # per step is the main call's, not a chunk's
     per_step = steps_s / steps
     compile_s = max(warm_s - warm_steps * per_step - terms_s, 0.0)
-    h = np.asarray(r.history)
     return {
         "steps": int(steps), "chunk": CHUNK,
         "optimiser": f"optax.adam({LEARNING_RATE})" if method == "adam" else "optax.lbfgs()",
@@ -123,14 +138,7 @@ def gradient_local(par, obj, drive, positions, start, steps, method="adam"):
         "evaluations": np.asarray(r.evaluations),
         "compile_s": compile_s, "warmup_call_s": warm_s, "main_call_wall_s": wall_s,
         "steps_s": steps_s, "final_terms_s": terms_s,
-        "seconds_per_step": per_step, "steps_per_second": 1.0 / per_step,
-        "history": h, "best_theta": np.asarray(r.best_theta),
-        "j_best": np.asarray(r.terms.total), "stable_terms": np.asarray(r.terms.stable),
-        "rms_error_m": np.asarray(r.terms.rms_error_m),
-        "margin_penalty": np.asarray(r.terms.margin_penalty),
-        "growth_rate": np.asarray(r.terms.growth_rate),
-        "peak_current_a": np.asarray(r.terms.peak_current_a),
-        "finite_history": bool(np.all(np.isfinite(h))),
+        **_outcome(r, per_step),
     }
 
 
@@ -166,14 +174,7 @@ def newton_local(par, obj, drive, positions, start, steps, every=1):
         "evaluations": np.ones_like(h, dtype=int),
         "compile_s": max(warm_s - 3 * per_step - terms_s, 0.0), "warmup_call_s": warm_s,
         "main_call_wall_s": wall_s, "steps_s": steps_s, "final_terms_s": terms_s,
-        "seconds_per_step": per_step, "steps_per_second": 1.0 / per_step,
-        "history": h, "best_theta": np.asarray(r.best_theta),
-        "j_best": np.asarray(r.terms.total), "stable_terms": np.asarray(r.terms.stable),
-        "rms_error_m": np.asarray(r.terms.rms_error_m),
-        "margin_penalty": np.asarray(r.terms.margin_penalty),
-        "growth_rate": np.asarray(r.terms.growth_rate),
-        "peak_current_a": np.asarray(r.terms.peak_current_a),
-        "finite_history": bool(np.all(np.isfinite(h))),
+        **_outcome(r, per_step),
     }
 
 
