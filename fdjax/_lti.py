@@ -83,25 +83,51 @@ class LTI(eqx.Module):
 
 
 def transfer(A, B, C, D, x) -> Array:
-    """C (xI − A)⁻¹ B + D at complex x (any shape) by a direct solve (:func:`solve`)."""
+    """C (xI − A)⁻¹ B + D at complex x (any shape) by a direct solve (:func:`solve`), against
+    B or, with fewer outputs than inputs, against Cᵀ (the transposed system)."""
     x = _c(x)
     n = A.shape[-1]
     if n == 0:
         return jnp.broadcast_to(_c(D), (*x.shape, *D.shape))
     M = x[..., None, None] * jnp.eye(n, dtype=jnp.complex128) - _c(A)
+    if C.shape[-2] < B.shape[-1]:  # fewer outputs than inputs: (C M⁻¹) B, C M⁻¹ = (M⁻ᵀ Cᵀ)ᵀ
+        Ct = jnp.broadcast_to(_c(C).T, (*x.shape, n, C.shape[-2]))
+        return jnp.swapaxes(solve(jnp.swapaxes(M, -1, -2), Ct), -1, -2) @ _c(B) + _c(D)
     X = solve(M, jnp.broadcast_to(_c(B), (*x.shape, *B.shape)))
     return _c(C) @ X + _c(D)
 
 
+@jax.custom_jvp
 def solve(M, R) -> Array:
-    """M⁻¹R for a batch of small dense systems M (…, n, n), R (…, n, k) (:func:`_eliminate`),
-    differentiated implicitly (``lax.custom_linear_solve``: a derivative is one more solve
-    with the same M, never a derivative of the elimination loop)."""
-    return jax.lax.custom_linear_solve(
-        lambda X: M @ X, R,
-        solve=lambda _, b: _eliminate(M, b),
-        transpose_solve=lambda _, b: _eliminate(jnp.swapaxes(M, -1, -2), b),
-    )
+    """M⁻¹R for a batch of small dense systems M (…, n, n), R (…, n, k) (:func:`_eliminate`).
+
+    Differentiated in closed form, d(M⁻¹R) = M⁻¹(dR − dM M⁻¹R), with M⁻¹ from one more
+    elimination (:func:`_inverse`): every derivative, of any order and in either mode, is then
+    matrix products, never a derivative of the elimination loop and never one more elimination
+    per tangent (a Hessian's columns share the two eliminations)."""
+    return _eliminate(M, R)
+
+
+@solve.defjvp
+def _solve_jvp(primals, tangents):
+    M, R = primals
+    dM, dR = tangents
+    X = solve(M, R)
+    return X, _inverse(M) @ (dR - dM @ X)
+
+
+@jax.custom_jvp
+def _inverse(M) -> Array:
+    """M⁻¹ (…, n, n) by elimination against the identity; d(M⁻¹) = −M⁻¹ dM M⁻¹."""
+    eye = jnp.broadcast_to(jnp.eye(M.shape[-1], dtype=M.dtype), M.shape)
+    return _eliminate(M, eye)
+
+
+@_inverse.defjvp
+def _inverse_jvp(primals, tangents):
+    (M,), (dM,) = primals, tangents
+    Mi = _inverse(M)
+    return Mi, -Mi @ dM @ Mi
 
 
 def _eliminate(M, R) -> Array:

@@ -281,6 +281,7 @@ def continuous_open_loops(law: Law, ch: Channels, omega, k_motor, tau, pade_orde
 
 def sampled_open_loops(law_d: LTI, reads, sp: SampledPlant, omega, k_motor, d: int):
     z = jnp.exp(_c(omega * sp.period) * 1j)
-    K = law_d.transfer(z)[..., 0, :]
+    # the law's first output (the current command) from each signal: one solve per z
+    K = transfer(law_d.A, law_d.B, law_d.C[:1], law_d.D[:1], z)[..., 0, :]
     P = _c(k_motor) * z ** (-d)
     return open_loops(K, P, sp.channels(z), *reads)
