@@ -31,7 +31,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array
 
-from .._lti import LTI, series, transfer, zoh
+from .._lti import LTI, series, transfer, transfer_hessenberg, zoh
 from ._blocks import delay_frf, pade_ss
 from ._controllers import LAW_SIGNALS, Law
 
@@ -252,7 +252,7 @@ class SampledPlant(eqx.Module):
                    jnp.asarray(period, jnp.float64))
 
     def channels(self, z) -> Channels:
-        G = transfer(self.Phi, self.Gam, self.C, self.D, z)[..., 0]
+        G = transfer_hessenberg(self.Phi, self.Gam, self.C, self.D, z)[..., 0]
         g_v = _c(self.screw_ratio / self.period) * (1.0 - 1.0 / z) * G[..., 0]
         return Channels(g_x=G[..., 1], g_v=g_v)
 
