@@ -263,8 +263,8 @@ def transfer_hessenberg(A, B, C, D, x) -> Array:
     A is balanced (:func:`_balance`) and reduced once to Hessenberg form H = Qᵀ D⁻¹AD Q
     (:func:`hessenberg`), after which each point costs O(n²) instead of O(n³): elimination of
     the single subdiagonal with pivoting between neighbouring rows, then back substitution
-    (the method of SLICOT's TB05AD, which python-control's frequency responses use).  Backward
-    stable: the error is round-off relative to ‖D⁻¹AD‖."""
+    (the method of SLICOT's TB05AD).  Backward stable: the error is round-off relative to
+    ‖D⁻¹AD‖."""
     n = A.shape[-1]
     x = _c(x)
     if n == 0:

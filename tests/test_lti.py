@@ -140,8 +140,10 @@ def test_hessenberg_frequency_response_matches_numpy_on_the_sampled_plant():
     w = jnp.asarray([0.3, 1.1])
 
     def dG(fn):
-        return jax.jvp(lambda v: fn(Phi, Gam, p.C[:2], p.D[:2, :1], jnp.exp(v.astype(jnp.complex128) * 1j)), (w,),
-                       (jnp.ones(2),))[1]
+        def G(v):
+            return fn(Phi, Gam, p.C[:2], p.D[:2, :1], jnp.exp(v.astype(jnp.complex128) * 1j))
+
+        return jax.jvp(G, (w,), (jnp.ones(2),))[1]
 
     d_h, d_dense = np.asarray(dG(transfer_hessenberg)), np.asarray(dG(transfer))
     assert np.max(np.abs(d_h - d_dense)) <= 1e-9 * np.max(np.abs(d_dense))

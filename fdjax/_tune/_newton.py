@@ -161,9 +161,8 @@ def tune_newton(
 
     Each step evaluates J, its gradient and its Hessian once per position (the Hessian's p
     columns are forward-mode derivatives of the reverse-mode gradient: 2p + 2 passes, p = 12
-    for :class:`fdjax.DoubleLoopParameterisation`, which in wall time cost about five
-    evaluations of J, because the frequency responses' derivatives are matrix products
-    with one inverse per frequency).  On the
+    for :class:`fdjax.DoubleLoopParameterisation`, which on the reference drive cost about ten
+    evaluations of J in wall time).  On the
     12-parameter local problem it reaches lower objectives than first-order steps and than the
     adaptive simplex (``benchmarks/tuning.py``); for many parameters (a network) use
     :func:`fdjax.train_schedule`.  The Hessian is exact for the tracking error and the margin
