@@ -17,16 +17,18 @@ BOUNDS = fdjax.MCMBounds.for_servo(fdjax.Servo())
 # ------------------------------------------------------------------------------ local tuning
 def test_local_tuning_improves_every_position():
     """Two positions in one vmapped Adam run from the reference controller: the objective
-    falls at both (measured 108 → 2.4 and 668 → 3.7 in 20 steps of a 1 mm stroke), and the
-    best designs are stable (eigenvalues)."""
+    falls at both (measured 108 → 2.3 and 516 → 8.3 in 20 steps of a 1 mm stroke), and the
+    best designs are stable (eigenvalues).  The file's tuners share one objective (64
+    frequencies, 4 kept modes), so that they share its compiled programs."""
     drive = fdjax.reference_drive()
     start = fdjax.reference_controller(drive)
     par = fdjax.DoubleLoopParameterisation(fdjax.MCMBounds.for_servo(fdjax.Servo()), start)
     ref = fdjax.reciprocating(stroke=1e-3, v_max=0.05, a_max=2.0, j_max=400.0, cycles=1)
-    obj = fdjax.Objective(ref, np.geomspace(5.0, 3900.0, 128),
+    obj = fdjax.Objective(ref, np.geomspace(5.0, 3900.0, 64),
                           twin=fdjax.TwinOptions(kept_modes=4))
     pos = np.array([0.115, 0.3])
     r = fdjax.tune_local(par, obj, drive, pos, start, steps=20, chunk=10)
+    print("J", np.asarray(r.history)[0], "->", np.asarray(r.terms.total))
     h = np.asarray(r.history)
     assert h.shape == (20, 2)
     np.testing.assert_array_equal(np.asarray(r.evaluations), np.ones((20, 2)))  # one a step
@@ -129,8 +131,8 @@ def test_tune_simplex_improves_every_position_and_names_its_arguments():
     start = fdjax.reference_controller(drive)
     par = fdjax.DoubleLoopParameterisation(BOUNDS, start)
     ref = fdjax.reciprocating(stroke=1e-3, v_max=0.05, a_max=2.0, j_max=400.0, cycles=1)
-    obj = fdjax.Objective(ref, np.geomspace(5.0, 3900.0, 200),
-                          twin=fdjax.TwinOptions(kept_modes=6))
+    obj = fdjax.Objective(ref, np.geomspace(5.0, 3900.0, 64),
+                          twin=fdjax.TwinOptions(kept_modes=4))
     pos = np.array([0.115, 0.3])
     r = fdjax.tune_simplex(par, obj, drive, pos, start, evaluations=120, chunk=60)
     h = np.asarray(r.history)
