@@ -65,6 +65,31 @@ def check(
     return eqx.error_if(value, jnp.logical_not(good), f"`{where}` must be {expected}")
 
 
+def inside(value, lo: float, hi: float, where: str, what: str = "the travel"):
+    """Table positions (m) inside ``what`` = [lo, hi], checked as :func:`check` does.  A
+    concrete value that misses the range but lies inside it once divided by 1000 was given in
+    millimetres: the message says so, with the value in metres."""
+    expected = f"inside {what} [{lo:.6g}, {hi:.6g}] m"
+    ok = lambda p: (p >= lo) & (p <= hi)  # noqa: E731  (NaN fails both comparisons)
+    if not is_concrete(value):
+        return check(value, ok, where, expected)
+    arr = np.asarray(value)
+    with np.errstate(invalid="ignore"):
+        good = np.broadcast_to(np.asarray(ok(arr)), arr.shape)
+    if np.all(good):
+        return value
+    bad = arr[~good] if arr.ndim else arr.reshape(1)
+    hint = ""
+    if np.isrealobj(bad):
+        with np.errstate(invalid="ignore"):
+            in_mm = np.all(ok(bad.astype(np.float64) * 1e-3))
+        if in_mm:
+            first = float(bad.reshape(-1)[0])
+            hint = (f"; table positions are in metres: {first:.6g} mm is "
+                    f"{first * 1e-3:.6g} m")
+    raise ValueError(f"`{where}` must be {expected}, got {_describe_bad(arr, good)}{hint}")
+
+
 def positive(value, where: str):
     """Finite and strictly positive."""
     return check(value, lambda v: _isfinite(v) & (v > 0), where, "finite and positive")

@@ -619,7 +619,18 @@ def main(argv=None) -> int:
         close = difflib.get_close_matches(word, COMMANDS, n=1)
         hint = f"; did you mean {close[0]!r}?" if close else ""
         parser.error(f"unknown command {word!r}{hint} (commands: {', '.join(COMMANDS)})")
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    if extra:  # argparse's message, with the closest option of the command when one is close
+        import difflib
+
+        sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+        options = [o for a in sub.choices[args.command]._actions for o in a.option_strings
+                   if o.startswith("--") and o != "--help"]
+        typed = [a for a in extra if a.startswith("--")]
+        close = difflib.get_close_matches(typed[0].split("=")[0], options, n=1) if typed else []
+        hint = f"; did you mean {close[0]!r}?" if close else ""
+        parser.error(f"unrecognized arguments: {' '.join(extra)}{hint} (options of "
+                     f"{args.command!r}: {', '.join(options)})")
     if args.command == "reproduce":
         reproduce(args.out, quick=args.quick)
     elif args.command == "demo":

@@ -146,8 +146,10 @@ def test_modes_writes_table(tmp_path, capsys):
         (["reprodce"], "unknown command 'reprodce'; did you mean 'reproduce'?"),
         (["figure", "--out", "x"], "unknown command 'figure'; did you mean 'figures'?"),
         (["plot"], "unknown command 'plot' (commands: reproduce, demo, figures, modes, tune)"),
-        (["reproduce", "--quik"], "unrecognized arguments: --quik"),
-        (["reproduce", "--qui"], "unrecognized arguments: --qui"),  # no silent abbreviations
+        (["reproduce", "--quik"], "unrecognized arguments: --quik; did you mean '--quick'? "
+                                  "(options of 'reproduce': --out, --quick)"),
+        (["reproduce", "--qui"], "unrecognized arguments: --qui; did you mean '--quick'?"),
+        # no silent abbreviations
         (["modes", "--source", "data"], "argument --source: invalid choice: 'data'"),
         # --positions is a count: a position typed in mm (or m) says so
         (["modes", "--positions", "115mm"],
@@ -159,11 +161,13 @@ def test_modes_writes_table(tmp_path, capsys):
          "argument --n-modes: expected the number of modes, an integer ≥ 1; got '0'"),
         ([], "the following arguments are required: {reproduce,demo,figures,modes,tune}"),
         (["tnue"], "unknown command 'tnue'; did you mean 'tune'?"),
-        (["tune", "--steps", "10"], "unrecognized arguments: --steps 10"),
+        (["tune", "--steps", "10"], "unrecognized arguments: --steps 10 (options of 'tune': "
+                                    "--out, --quick)"),
+        (["demo", "--quick"], "unrecognized arguments: --quick (options of 'demo': --out)"),
     ],
     ids=["typo", "typo-figures", "unknown-command", "bad-option", "abbreviation", "bad-choice",
          "positions-in-mm", "positions-in-m", "positions-too-few", "n-modes-zero", "no-command",
-         "typo-tune", "tune-bad-option"],
+         "typo-tune", "tune-bad-option", "demo-is-quick"],
 )
 def test_argument_errors(argv, message, capsys):
     with pytest.raises(SystemExit) as exc:

@@ -123,3 +123,25 @@ def test_nan_parameter_inside_jit_is_not_silent():
 
     with pytest.raises(Exception, match=r"NutJoint\(stiffness=\.\.\.\)` must be finite"):
         jax.block_until_ready(g(jnp.asarray(jnp.nan)))
+
+
+def test_position_in_millimetres_says_so():
+    """A position typed in mm (inside the travel once divided by 1000) gets the value in metres
+    in the message, from the drive, the loop's functions and the tuners; one outside in both
+    units does not."""
+    drive = fdjax.reference_drive()
+    hint = r"; table positions are in metres: 250 mm is 0\.25 m$"
+    with pytest.raises(ValueError, match=r"`BallScrewDrive\.frf\(position_m=\.\.\.\)` must be "
+                                         r"inside the travel \[0\.1, 0\.7\] m, got 250 at "
+                                         r"index 1" + hint):
+        drive.frf([0.3, 250.0], FREQ)
+    with pytest.raises(ValueError, match=r"`state_space\(position_m=\.\.\.\)` .* got 250" + hint):
+        fdjax.state_space(drive, 250.0)
+    ref = fdjax.reference_controller(drive)
+    par = fdjax.DoubleLoopParameterisation(fdjax.MCMBounds.for_servo(fdjax.Servo()), ref)
+    obj = fdjax.tuning_objective()
+    with pytest.raises(ValueError, match=r"`tune_local\(positions_m=\.\.\.\)` .* got 250 at "
+                                         r"index 0 and 1 more" + hint):
+        fdjax.tune_local(par, obj, drive, [250.0, 400.0], ref)
+    with pytest.raises(ValueError, match=r"got 900 at index 0$"):  # 0.9 m: outside in m and mm
+        drive.frf([900.0], FREQ)

@@ -129,9 +129,12 @@ RECEPTANCE_METHODS = [
 
 
 @pytest.mark.parametrize("method", RECEPTANCE_METHODS)
-@pytest.mark.parametrize("y, shown", [(115.0, "115"), (-3.0, "-3"), (np.nan, "nan")])
+@pytest.mark.parametrize("y, shown", [
+    (115.0, r"115; table positions are in metres: 115 mm is 0\.115 m"),  # mm typed as m
+    (-3.0, "-3"), (np.nan, "nan")])
 def test_drive_pointwise_methods_check_positions_eagerly(drive, method, y, shown):
-    """115 (mm typed as m), a negative position and NaN returned numbers or NaN before."""
+    """115 (mm typed as m: the message says so), a negative position and NaN returned numbers
+    or NaN before."""
     with pytest.raises(ValueError, match=rf"`BallScrewDrive\.{method}\(position_m=\.\.\.\)` "
                                          rf"must be inside the travel \[0\.1, 0\.7\] m, "
                                          rf"got {shown}$"):

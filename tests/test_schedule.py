@@ -108,7 +108,8 @@ def test_filter_table_is_the_schedule_in_drive_units():
     # a position in mm is refused, eagerly and under jit (a network does not extrapolate)
     msg = (r"`ScheduledLoop.controller\(position_m=\.\.\.\)` must be inside the network's "
            r"travel \[0.1, 0.7\] m")
-    with pytest.raises(ValueError, match=msg + ", got 400"):
+    with pytest.raises(ValueError, match=msg + ", got 400; table positions are in metres: "
+                                             r"400 mm is 0\.4 m$"):
         sched.controller(400.0)
     with pytest.raises(Exception, match=msg):
         eqx.filter_jit(lambda c, y: c.controller(y).mcm.peak.omega)(sched, jnp.asarray(400.0))

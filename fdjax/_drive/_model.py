@@ -124,12 +124,7 @@ class BallScrewDrive(eqx.Module):
         where = f"{fn}(position_m=...)"
         pos = _checks.real_array(position_m, where)
         lo, hi = self.travel_m
-        pos = _checks.check(
-            pos,
-            lambda p: (p >= lo) & (p <= hi),  # NaN fails both comparisons
-            where,
-            f"inside the travel [{lo:.6g}, {hi:.6g}] m",
-        )
+        pos = _checks.inside(pos, lo, hi, where)
         # The nut stays inside the screw for every position of the travel when the drive was
         # built with concrete values (__check_init__); a traced or tree_at-edited nut_offset
         # or screw length is only known here.

@@ -18,6 +18,7 @@ import numpy as np
 import optax
 from jaxtyping import Array, ArrayLike, Float, Int
 
+from .. import _checks
 from .._control._controllers import AbstractController
 from .._drive._model import BallScrewDrive
 from ._objective import Objective, ObjectiveTerms
@@ -227,9 +228,7 @@ def _check_common(fn, parameterisation, objective, drive, positions_m, steps, ch
         raise ValueError(f"`{fn}(positions_m=...)` must be a non-empty 1-D array, got shape "
                          f"{pos.shape}")
     lo, hi = drive.travel_m
-    if not np.all((pos >= lo) & (pos <= hi)):
-        raise ValueError(f"`{fn}(positions_m=...)` must be inside the travel [{lo:.6g}, "
-                         f"{hi:.6g}] m, got {pos.tolist()}")
+    _checks.inside(pos, lo, hi, f"{fn}(positions_m=...)")
     for name, value in (("steps", steps), ("chunk", chunk)):
         if not (isinstance(value, int) and value >= 1):
             raise ValueError(f"`{fn}({name}=...)` must be a positive int, got {value!r}")

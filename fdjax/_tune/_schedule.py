@@ -162,8 +162,7 @@ class ScheduledLoop(AbstractController):
     def _in_travel(self, position_m, where: str):
         """``position_m`` checked inside the network's travel (guarded when traced)."""
         lo, hi = self.network.travel_m
-        return _checks.check(position_m, lambda p: (p >= lo) & (p <= hi), where,
-                             f"inside the network's travel [{lo:.6g}, {hi:.6g}] m")
+        return _checks.inside(position_m, lo, hi, where, "the network's travel")
 
     def controller(self, position_m: Float[ArrayLike, ""]) -> DoubleLoop:
         """The fixed double loop the schedule runs at table position Y (m), inside the travel
