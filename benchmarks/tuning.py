@@ -142,17 +142,20 @@ def gradient_local(par, obj, drive, positions, start, steps, method="adam"):
     }
 
 
-def newton_local(par, obj, drive, positions, start, steps, every=1):
+def newton_local(par, obj, drive, positions, start, steps, every=1, radius=0.3,
+                 max_radius=5.0, shrink=0.25):
     """fdjax.tune_newton: one evaluation of J with its gradient and Hessian per step and
     position.  A warm-up call of 2 steps compiles the programs; the main call is timed whole,
     its final terms apart; the start's evaluation counts as a step (history row 0)."""
+    trust = dict(radius=radius, max_radius=max_radius, shrink=shrink)
     t0 = time.perf_counter()
     warm = fdjax.tune_newton(par, obj, drive, positions, start, steps=2,
-                             hessian_every=min(every, 2))
+                             hessian_every=min(every, 2), **trust)
     jax.block_until_ready(warm.history)
     warm_s = time.perf_counter() - t0
     t0 = time.perf_counter()
-    r = fdjax.tune_newton(par, obj, drive, positions, start, steps=steps, hessian_every=every)
+    r = fdjax.tune_newton(par, obj, drive, positions, start, steps=steps, hessian_every=every,
+                          **trust)
     jax.block_until_ready((r.history, r.terms.total))
     wall_s = time.perf_counter() - t0
     terms_s, _ = median_time(lambda: jax.vmap(
@@ -169,7 +172,8 @@ def newton_local(par, obj, drive, positions, start, steps, every=1):
         "steps": int(steps), "chunk": 1, "tuner": "tune_newton",
         "optimiser": "trust-region Newton, exact Hessian"
                      + (" every step" if every == 1 else f" every {every} steps, SR1 between")
-                     + " (radius 0.3, shrink 0.25)",
+                     + f" (radius {radius:g}, max {max_radius:g}, shrink {shrink:g})",
+        "trust_region": trust,
         "hessian_every": int(every), "sims_rows": sims,
         "evaluations": np.ones_like(h, dtype=int),
         "compile_s": max(warm_s - 3 * per_step - terms_s, 0.0), "warmup_call_s": warm_s,
