@@ -31,12 +31,14 @@ HEAVY = ("numpy", "jax", "jaxlib", "equinox", "diffrax", "optimistix", "matplotl
 # ---------------------------------------------------------------------- commands
 def test_demo_writes_figures(tmp_path):
     # The demo runs its long simulations and sweeps, so it runs as users run it: in its own
-    # process, with XLA's optimisations (the other tests compile with them off, conftest.py).
+    # process, with XLA's optimisations and emitters (the other tests compile with LLVM's
+    # optimisations off and the classic emitters, conftest.py).
     out = tmp_path / "demo"
     env = dict(os.environ, FDJAX_TEST_OPTIMISE="1")
     env["XLA_FLAGS"] = " ".join(
         f for f in env.get("XLA_FLAGS", "").split()
-        if not f.startswith(("--xla_backend_optimization_level", "--xla_llvm_disable"))
+        if not f.startswith(("--xla_backend_optimization_level", "--xla_llvm_disable",
+                             "--xla_cpu_use_fusion_emitters"))
     )
     proc = subprocess.run([sys.executable, "-m", "fdjax.cli", "demo", "--out", str(out)],
                           env=env, capture_output=True, text=True, timeout=1200)

@@ -76,11 +76,12 @@ def test_coupled_equals_direct_assembly(drive, H):
 
     Both are exact; the difference is the round-off of the direct solve, ≈ eps·cond(D) of the
     largest response.  Measured: 8.9e-12 normwise; entrywise ≤ 4.3e-11, except θ1/F3 at 3 kHz
-    (2.8e-10), where that entry is 1e-12 of its own peak (the reference drive without a table
-    shows the same there, 2.9e-9)."""
+    (2.8e-10 with XLA's fusion emitters, 6.7e-10 with the classic ones the tests compile with),
+    where that entry is 1e-12 of its own peak (the reference drive without a table shows the
+    same there, 2.9e-9)."""
     Hd = np.asarray(drive.frf_direct(POS, FREQ))
     assert normwise_error(H, Hd, drive).max() < 2e-11
-    np.testing.assert_allclose(H, Hd, rtol=5e-10, atol=0)
+    np.testing.assert_allclose(H, Hd, rtol=1e-9, atol=0)
 
 
 def test_reciprocity_and_a_new_mode(drive, plain, H):
