@@ -19,7 +19,7 @@ demo: $(STAMP)
 	$(VENV)/bin/fdjax reproduce --quick --out $(OUT)
 
 # Three processes on a 2-core machine (a process compiling leaves its core partly idle; three
-# keep both busy: 10.2 min against 11.2 with two), a test file per process at a time: the
+# keep both busy: 1.97 cores used on average), a test file per process at a time: the
 # files' tests share compiled programs.  `$(PY) -m pytest -q` runs the same tests in one.
 # The 25 slowest tests are listed at the end.
 test: $(STAMP)
