@@ -167,7 +167,9 @@ def tune_newton(
     the adaptive simplex given 1500 evaluations per position, in less wall time
     (``benchmarks/tuning.py``); it stops in the
     minimum its trust region leads to, and a simplex run for 8× longer ends lower at four of
-    six positions (``benchmarks/tuning_converged.py``).  For many parameters (a network) use
+    six positions (``benchmarks/tuning_converged.py``).  There, a larger initial ``radius``
+    (1 or 3) took as many exact steps or more, and ``hessian_every`` = 20 or "the start only"
+    more steps than 8 (``benchmarks/tuning_variants.py``).  For many parameters (a network) use
     :func:`fdjax.train_schedule`.  The Hessian is exact for the tracking error and the margin
     penalties; the growth-rate barrier's second derivative holds the dominant eigenspace
     fixed (its gradient is exact), which the acceptance test ρ absorbs.
