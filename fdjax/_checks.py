@@ -66,28 +66,20 @@ def check(
 
 
 def inside(value, lo: float, hi: float, where: str, what: str = "the travel"):
-    """Table positions (m) inside ``what`` = [lo, hi], checked as :func:`check` does.  A
-    concrete value that misses the range but lies inside it once divided by 1000 was given in
+    """Table positions (m) inside ``what`` = [lo, hi], checked by :func:`check`.  A concrete
+    value that misses the range but lies inside it once divided by 1000 was given in
     millimetres: the message says so, with the value in metres."""
-    expected = f"inside {what} [{lo:.6g}, {hi:.6g}] m"
     ok = lambda p: (p >= lo) & (p <= hi)  # noqa: E731  (NaN fails both comparisons)
-    if not is_concrete(value):
-        return check(value, ok, where, expected)
-    arr = np.asarray(value)
-    with np.errstate(invalid="ignore"):
-        good = np.broadcast_to(np.asarray(ok(arr)), arr.shape)
-    if np.all(good):
-        return value
-    bad = arr[~good] if arr.ndim else arr.reshape(1)
-    hint = ""
-    if np.isrealobj(bad):
+    try:
+        return check(value, ok, where, f"inside {what} [{lo:.6g}, {hi:.6g}] m")
+    except ValueError as err:  # raised eagerly: the value is concrete and real here
+        arr = np.asarray(value, np.float64)
         with np.errstate(invalid="ignore"):
-            in_mm = np.all(ok(bad.astype(np.float64) * 1e-3))
-        if in_mm:
-            first = float(bad.reshape(-1)[0])
-            hint = (f"; table positions are in metres: {first:.6g} mm is "
-                    f"{first * 1e-3:.6g} m")
-    raise ValueError(f"`{where}` must be {expected}, got {_describe_bad(arr, good)}{hint}")
+            bad = arr[~np.broadcast_to(ok(arr), arr.shape)]
+            if np.all(ok(bad * 1e-3)):
+                raise ValueError(f"{err}; table positions are in metres: {bad[0]:.6g} mm is "
+                                 f"{bad[0] * 1e-3:.6g} m") from None
+        raise
 
 
 def positive(value, where: str):

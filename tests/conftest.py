@@ -8,7 +8,7 @@ import os
 # two thirds of the suite's CPU time), so unless FDJAX_TEST_OPTIMISE=1 they compile
 # * with LLVM's optimisations off: a third less CPU time, the same XLA graph optimisations;
 # * with XLA:CPU's classic fusion emitters (--xla_cpu_use_fusion_emitters=false): a third less
-#   again (measured: 481 → 323 s for the suite, 901 → 580 CPU-s).
+#   again (measured: `make test` 481 → 335 s, 901 → 593 CPU-s).
 # Results agree with XLA's defaults to round-off (every tolerance holds under both; the one
 # entry that moved most, θ1/F3 at 3 kHz in test_table, 2.8e-10 → 6.7e-10 relative, is 1e-12 of
 # its own peak).  The demo test runs the whole chain in its own process with XLA's defaults,
