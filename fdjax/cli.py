@@ -404,7 +404,9 @@ def control_report(out: str, controllers: dict, *, certify_step_mm: float | None
                          "modulus_margin_required": float(r["certificate"].requirements[2])}
         _write_csv(os.path.join(out, f"fig18_{name}.csv"), r["certificate"].rows())
     certs = {}
-    for name in ("mcm_interp", "mcm_ata", "mcm_ata_e2e"):
+    for name in ("mcm_robust", "mcm_interp", "mcm_ata", "mcm_ata_e2e"):
+        if name not in controllers:
+            continue
         if certify_step_mm is None:
             cert = ev[name]["certificate"]
         else:
@@ -422,6 +424,7 @@ def control_report(out: str, controllers: dict, *, certify_step_mm: float | None
             "local designs": (synthesis.local.history, names),
             "common gains": (synthesis.shared.history, names[1:]),
             "robust PID (worst position)": (synthesis.pid_robust.worst, None),
+            "robust MCM (worst position)": (synthesis.mcm_robust.worst, None),
             "end to end (batch)": (synthesis.e2e.history, None),
         }).savefig(os.path.join(out, "convergence.png"), dpi=90)
         _write_csv(os.path.join(out, "local_designs.csv"), synthesis.local_table())
@@ -452,7 +455,8 @@ def tune(out: str, quick: bool = False) -> dict:
 
     start = time.perf_counter()
     steps = dict(local_steps=30, shared_steps=20, pid_steps=30, network_steps=2000,
-                 e2e_steps=10, simplex_evaluations=300, refine_steps=10) if quick else {}
+                 e2e_steps=10, simplex_evaluations=300, refine_steps=10,
+                 robust_steps=12) if quick else {}
     syn = fdjax.synthesise(progress=True, **steps)
     control = control_report(out, syn.controllers, synthesis=syn,
                              certify_step_mm=None if quick else 1.0,

@@ -16,7 +16,9 @@ r"""The whole gradient synthesis of paper Sec. 4.2 and Fig. 18 on one drive, as 
    115 mm with wide penalties, the better of the two continued by L-BFGS with sharp ones),
    the MCM
    tuned at 115 mm held fixed, the six MCMs interpolated linearly in their normalised
-   parameters (:class:`InterpolatedLoop`).
+   parameters (:class:`InterpolatedLoop`), and the robust MCM: one double loop with its MCM
+   for every position (:func:`tune_robust` over 13 positions, L-BFGS), the fixed design a
+   schedule must beat, from the end-to-end schedule at the screw end.
 4. **The ATA network** fitted to the six MCMs by backpropagation (:func:`fit_network`), then
    **trained end to end** against the objective over the travel, with the loop's common gains
    (:func:`train_schedule`, L-BFGS on a grid of positions over the travel).
@@ -62,13 +64,15 @@ from ._simplex import tune_simplex
 __all__ = ["CONTROLLERS", "Synthesis", "synthesise", "evaluate", "tuning_motion",
            "tuning_objective"]
 
-CONTROLLERS = ("pid_115", "pid_robust", "mcm_fixed", "mcm_interp", "mcm_ata", "mcm_ata_e2e")
+CONTROLLERS = ("pid_115", "pid_robust", "mcm_fixed", "mcm_robust", "mcm_interp", "mcm_ata",
+               "mcm_ata_e2e")
 """The controllers of Fig. 18, in the order of the figure's legend."""
 
 LABELS = {
     "pid_115": "PID tuned at 115 mm",
     "pid_robust": "robust PID",
     "mcm_fixed": "MCM tuned at 115 mm, fixed",
+    "mcm_robust": "robust MCM (one design)",
     "mcm_interp": "local MCMs interpolated",
     "mcm_ata": "MCM + ATA (backpropagation)",
     "mcm_ata_e2e": "MCM + ATA (end to end)",
@@ -114,7 +118,7 @@ class Synthesis:
     """Result of :func:`synthesise`.
 
     Attributes:
-        controllers: the six controllers of Fig. 18 by name (:data:`CONTROLLERS`).
+        controllers: the controllers of Fig. 18 by name (:data:`CONTROLLERS`).
         schedule_bp, schedule_e2e: the scheduled loops (backpropagation, end to end).
         local: the full local designs at 115 mm and the six design positions.
         simplex: the simplex searches at 115 mm (``"mcm"``, ``"pid"``) the gradient starts from.
@@ -122,6 +126,7 @@ class Synthesis:
             (``"mcm"``, ``"pid"`` at 115 mm; ``"pid_robust"``).
         shared: the six MCMs with common gains.
         pid_115, pid_robust: the PID tunings.
+        mcm_robust: the robust MCM's tuning (one design for every position).
         network_loss: the backpropagation loss per step.
         e2e: the end-to-end training record.
         bounds, design_positions_m: the filter bounds and the six design positions (m).
@@ -138,6 +143,7 @@ class Synthesis:
     pid_robust: RobustTuning
     network_loss: np.ndarray
     e2e: Descent
+    mcm_robust: RobustTuning
     bounds: MCMBounds
     design_positions_m: np.ndarray
     parameterisation: DoubleLoopParameterisation
@@ -190,6 +196,7 @@ def synthesise(
     network_steps: int = 4000,
     e2e_steps: int = 60,
     e2e_positions: int = 13,
+    robust_steps: int = 120,
     simplex_evaluations: int = 3000,
     train_gains: bool = True,
     feedforward: bool = False,
@@ -211,7 +218,8 @@ def synthesise(
     steps for the six local designs, the robust PID's sharp stage (after ``pid_steps`` Adam
     steps with wide penalties), ``shared_steps`` for the common gains; ``e2e_steps`` L-BFGS
     steps end to end, on ``e2e_positions`` positions evenly over the travel (every 50 mm by
-    default, most of them between the six design positions).  Between stages the compiled
+    default, most of them between the six design positions); ``robust_steps`` L-BFGS steps for
+    the robust MCM.  Between stages the compiled
     programs are released when the process holds many memory maps (each program maps its
     machine code; a process may hold 65530)."""
     drive = reference_drive() if drive is None else drive
@@ -302,16 +310,25 @@ def synthesise(
                                        progress=progress)
     seconds["end_to_end"] = time.perf_counter() - t0
 
+    release()  # compiled programs of the stage before: memory maps
+    t0 = time.perf_counter()
+    _say(progress, "robust MCM over 13 positions, from the end-to-end schedule at the screw end")
+    mcm_robust = robust_mcm(par, obj, drive, schedule_e2e, steps=robust_steps,
+                            progress=progress)
+    seconds["mcm_robust"] = time.perf_counter() - t0
+
     controllers = {
         "pid_115": ppar.to_controller(pid_115.best_theta[0]),
         "pid_robust": ppar.to_controller(pid_robust.best_theta),
         "mcm_fixed": par.to_controller(local.best_theta[0]),
+        "mcm_robust": par.to_controller(mcm_robust.best_theta),
         "mcm_interp": InterpolatedLoop(loop, design, targets, bounds),
         "mcm_ata": schedule_bp,
         "mcm_ata_e2e": schedule_e2e,
     }
     return Synthesis(controllers, schedule_bp, schedule_e2e, local, shared, pid_115,
-                     pid_robust, np.asarray(loss), e2e, bounds, design, par, seconds,
+                     pid_robust, np.asarray(loss), e2e, mcm_robust, bounds, design, par,
+                     seconds,
                      {"mcm": search, "pid": pid_search},
                      {"mcm": coarse, "pid": pid_coarse, "pid_robust": robust_coarse})
 
@@ -328,6 +345,18 @@ def _at_115(par, wide, sharp, drive, start, evaluations, steps, refine, progress
     fine = tune_local(par, sharp, drive, y, coarse.best_theta[0], steps=refine,
                       optimiser=default_optimiser("lbfgs"), chunk=10, progress=progress)
     return search, coarse, fine
+
+
+def robust_mcm(par: DoubleLoopParameterisation, objective: Objective, drive: BallScrewDrive,
+               schedule: ScheduledLoop, *, steps: int = 120,
+               progress: bool = False) -> RobustTuning:
+    """The robust MCM of Fig. 18: one double loop with its MCM (gains and filters) for every
+    position, by ``steps`` L-BFGS steps of :func:`tune_robust` over 13 positions on the
+    travel, from ``schedule``'s controller at the screw end (where the margins bind)."""
+    y = np.linspace(*drive.travel_m, 13)
+    start = par.from_controller(schedule.controller(drive.travel_m[1]))
+    return tune_robust(par, objective, drive, y, start, steps=steps,
+                       optimiser=default_optimiser("lbfgs"), chunk=10, progress=progress)
 
 
 def evaluate(
