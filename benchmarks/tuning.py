@@ -86,6 +86,22 @@ def setup(n_positions=6):
     return drive, par, obj, positions, start
 
 
+def rerun_problem(description, result_name):
+    """The command line of the scripts that rerun this problem against Nelder-Mead with other
+    tuners (``--maxfev``, ``--quick``, ``--out``): (arguments, load average at the start,
+    :func:`setup`'s problem on six positions, or two with ``--quick``)."""
+    ap = argparse.ArgumentParser(description=description)
+    ap.add_argument("--maxfev", type=int, default=1500)
+    ap.add_argument("--quick", action="store_true",
+                    help="smoke test: two positions, maxfev 200, a sixth of the steps")
+    ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results",
+                                                  result_name))
+    args = ap.parse_args()
+    if args.quick:
+        args.maxfev = 200
+    return args, loadavg(), setup(2 if args.quick else 6)
+
+
 def _outcome(r, per_step):
     """A tuner's run (a LocalTuning) as the benchmark records it: the time per step, the
     history and the best designs' terms."""

@@ -18,7 +18,6 @@ Usage:  python benchmarks/tuning_cmaes.py [--maxfev 1500] [--quick]
 
 from __future__ import annotations
 
-import argparse
 import os
 import platform
 import time
@@ -28,7 +27,7 @@ import jax
 import numpy as np
 import scipy
 from _timing import jsonable, loadavg, write_results
-from tuning import TARGETS, compare, derivative_free, newton_local, setup
+from tuning import TARGETS, compare, derivative_free, newton_local, rerun_problem
 
 SIGMAS = (0.1, 0.3)
 SEED = 1
@@ -90,17 +89,8 @@ def _summary(name, baseline, grads, positions):
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--maxfev", type=int, default=1500)
-    ap.add_argument("--quick", action="store_true",
-                    help="smoke test: two positions, maxfev 200, a sixth of the steps")
-    ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results",
-                                                  "tuning_cmaes.json"))
-    args = ap.parse_args()
-    if args.quick:
-        args.maxfev = 200
-    load0 = loadavg()
-    drive, par, obj, positions, start = setup(2 if args.quick else 6)
+    args, load0, (drive, par, obj, positions, start) = rerun_problem(
+        __doc__.splitlines()[0], "tuning_cmaes.json")
     baselines = {"Nelder-Mead (scipy, adaptive, step 0.1)":
                  derivative_free(par, obj, drive, positions, start, args.maxfev)}
     for s in SIGMAS:
@@ -110,10 +100,11 @@ def main():
         print(name, [(d["position_m"], round(d["j_best"], 4), d["evals_to_best"])
                      for d in b["positions"]], flush=True)
     k = 6 if args.quick else 1
-    grads = {"exact Hessian every step (60 steps)":
-             newton_local(par, obj, drive, positions, start, max(60 // k, 10)),
-             "exact Hessian every 8 steps, SR1 between (150 steps)":
-             newton_local(par, obj, drive, positions, start, max(150 // k, 10), every=8)}
+    n_exact, n_sr1 = max(60 // k, 10), max(150 // k, 10)
+    grads = {f"exact Hessian every step ({n_exact} steps)":
+             newton_local(par, obj, drive, positions, start, n_exact),
+             f"exact Hessian every 8 steps, SR1 between ({n_sr1} steps)":
+             newton_local(par, obj, drive, positions, start, n_sr1, every=8)}
     rows = [_summary(name, b, grads, positions) for name, b in baselines.items()]
     for r in rows:
         print(r["baseline"], {g: {q: v["totals"].get(q) for q in ("simulations_ratio",

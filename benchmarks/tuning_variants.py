@@ -18,7 +18,6 @@ Usage:  python benchmarks/tuning_variants.py [--maxfev 1500] [--quick]
 
 from __future__ import annotations
 
-import argparse
 import os
 import platform
 
@@ -26,7 +25,7 @@ import jax
 import numpy as np
 import scipy
 from _timing import jsonable, loadavg, write_results  # benchmarks/ is on sys.path
-from tuning import compare, derivative_free, newton_local, setup
+from tuning import compare, derivative_free, newton_local, rerun_problem
 
 ONLY_AT_START = 10**9  # hessian_every: the exact Hessian at the start only
 
@@ -50,17 +49,8 @@ VARIANTS = [
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--maxfev", type=int, default=1500)
-    ap.add_argument("--quick", action="store_true",
-                    help="smoke test: two positions, maxfev 200, a sixth of the steps")
-    ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results",
-                                                  "tuning_variants.json"))
-    args = ap.parse_args()
-    if args.quick:
-        args.maxfev = 200
-    load0 = loadavg()
-    drive, par, obj, positions, start = setup(2 if args.quick else 6)
+    args, load0, (drive, par, obj, positions, start) = rerun_problem(
+        __doc__.splitlines()[0], "tuning_variants.json")
     nm = derivative_free(par, obj, drive, positions, start, args.maxfev)
     print("nelder-mead", [(d["position_m"], round(d["j_best"], 4), d["evals_to_best"])
                           for d in nm["positions"]], flush=True)
