@@ -159,11 +159,13 @@ def gradient_local(par, obj, drive, positions, start, steps, method="adam"):
 
 
 def newton_local(par, obj, drive, positions, start, steps, every=1, radius=0.3,
-                 max_radius=5.0, shrink=0.25):
+                 max_radius=5.0, shrink=0.25, hessian="full"):
     """fdjax.tune_newton: one evaluation of J with its gradient and Hessian per step and
-    position.  A warm-up call of 2 steps compiles the programs; the main call is timed whole,
-    its final terms apart; the start's evaluation counts as a step (history row 0)."""
-    trust = dict(radius=radius, max_radius=max_radius, shrink=shrink)
+    position (with ``hessian="margins"``: J with its gradient, and the Hessian of the margin
+    term alone, which needs no simulation).  A warm-up call of 2 steps compiles the programs;
+    the main call is timed whole, its final terms apart; the start's evaluation counts as a
+    step (history row 0)."""
+    trust = dict(radius=radius, max_radius=max_radius, shrink=shrink, hessian=hessian)
     t0 = time.perf_counter()
     warm = fdjax.tune_newton(par, obj, drive, positions, start, steps=2,
                              hessian_every=min(every, 2), **trust)
@@ -182,12 +184,15 @@ def newton_local(par, obj, drive, positions, start, steps, every=1, radius=0.3,
     h = np.asarray(r.history)
     n_par = len(par.names)
     # row 0: the start, with the Hessian; row k: step k, with the Hessian when every | k
-    with_h = np.array([k % every == 0 for k in range(steps + 1)])
+    # (the margins' Hessian alone runs no simulation)
+    with_h = np.array([k % every == 0 and hessian == "full" for k in range(steps + 1)])
     sims = np.where(with_h, 2 + 2 * n_par, 2)[:, None] * np.ones((1, h.shape[1]), int)
     return {
         "steps": int(steps), "chunk": 1, "tuner": "tune_newton",
         "optimiser": "trust-region Newton, exact Hessian"
-                     + (" every step" if every == 1 else f" every {every} steps, SR1 between")
+                     + (" of the margin term every step, SR1 for the rest of J"
+                        if hessian == "margins" else
+                        " every step" if every == 1 else f" every {every} steps, SR1 between")
                      + f" (radius {radius:g}, max {max_radius:g}, shrink {shrink:g})",
         "trust_region": trust,
         "hessian_every": int(every), "sims_rows": sims,

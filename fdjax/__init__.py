@@ -23,11 +23,13 @@ if "jax" in sys.modules:
     sys.modules["jax"].config.update("jax_enable_x64", True)
 else:
     os.environ.setdefault("JAX_ENABLE_X64", "1")
-    # XLA:CPU's concurrency-optimised scheduler has been seen to dead-lock (every thread
-    # asleep) on the loop programs here on small machines, and to compile them slowly.
-    _flag = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
-    if "xla_cpu_enable_concurrency_optimized_scheduler" not in os.environ.get("XLA_FLAGS", ""):
-        os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + _flag).strip()
+# XLA:CPU's concurrency-optimised scheduler has been seen to dead-lock (every thread asleep, on
+# the first or a later call of a compiled program) on the loop programs here on small
+# machines, and to compile them slowly.  XLA reads the flag when JAX starts its CPU backend
+# (at the first array), so this holds also where JAX was imported first.
+_flag = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
+if "xla_cpu_enable_concurrency_optimized_scheduler" not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + _flag).strip()
 
 _EXPORTS = {
     "._analysis": (

@@ -8,7 +8,7 @@ import pytest
 from compile_events import compilations
 
 import fdjax
-from fdjax._tune._newton import _evaluate, trust_region_step
+from fdjax._tune._newton import _evaluate, _evaluate_split, trust_region_step
 
 
 def _conditions(g, H, delta, p):
@@ -121,6 +121,39 @@ def test_tune_newton_lowers_the_objective_with_the_exact_hessian():
         assert np.linalg.norm(fd - col) < 1e-5 * np.linalg.norm(col), (k, fd, col)
 
 
+def test_tune_newton_with_the_margins_hessian():
+    """hessian="margins": the exact Hessian of the margin term alone (no simulation), SR1 for
+    the rest of J.  The margin term is the weighted penalty of J's terms; the split program's
+    gradient is J's; its Hessian is J's when the simulated terms are weighted out (tracking
+    scaled by 1e-9, barriers off: measured 5e-10 relative); four steps at two positions lower J
+    at both (measured 7.87 → 4.48 and 19.1 → 4.07)."""
+    drive, start, par, obj = _problem()
+    pos = np.array([0.115, 0.3])
+    y = jnp.asarray(pos)
+    theta = jnp.broadcast_to(par.from_controller(start), (2, 12))
+    c = par.to_controller(theta[0])
+    terms = obj(c, drive, 0.115)
+    np.testing.assert_allclose(float(obj.margin_term(c, drive, 0.115)),
+                               float(obj.margin_weight * terms.margin_penalty), rtol=1e-12)
+    j, g, g_m, H_m = _evaluate_split(par, obj, drive, y, theta)
+    j_full, g_full, _ = _evaluate(par, obj, drive, y, theta)
+    np.testing.assert_allclose(np.asarray(j), np.asarray(j_full), rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(g), np.asarray(g_full), rtol=1e-9, atol=1e-12)
+    quiet = eqx.tree_at(lambda o: (o.error_scale_m, o.stability_weight, o.current_weight), obj,
+                        tuple(jnp.asarray(v, jnp.float64) for v in (1e3, 0.0, 0.0)))
+    _, g_q, H_q = _evaluate(par, quiet, drive, y, theta)
+    assert np.linalg.norm(np.asarray(g_q - g_m)) < 1e-8 * np.linalg.norm(np.asarray(g_m))
+    err = np.linalg.norm(np.asarray(H_q - H_m)) / np.linalg.norm(np.asarray(H_m))
+    print("margins' Hessian against J's, simulated terms weighted out:", err)
+    assert err < 1e-8, err
+    r = fdjax.tune_newton(par, obj, drive, pos, start, steps=4, hessian="margins")
+    h = np.asarray(r.history)
+    assert h.shape == (5, 2) and np.all(np.isfinite(h))
+    print("J", h[0], "->", np.asarray(r.terms.total))
+    assert np.all(np.asarray(r.terms.total) < 0.65 * h[0]), (h[0], r.terms.total)  # 0.57, 0.21
+    assert np.all(np.asarray(r.terms.stable))
+
+
 def test_sr1_update_meets_the_secant_equation():
     """H⁺ s = y exactly (to round-off, measured 2e-16 relative), H⁺ symmetric, and a step
     orthogonal to its residual leaves H unchanged."""
@@ -146,6 +179,10 @@ def test_sr1_update_meets_the_secant_equation():
      r"`tune_newton\(max_radius=\.\.\.\)` must be a number ≥ radius = 1.0, got 0.5"),
     ({"shrink": 1.0}, r"`tune_newton\(shrink=\.\.\.\)` must be a number in \(0, 1\), got 1.0"),
     ({"hessian_every": 0}, r"`tune_newton\(hessian_every=\.\.\.\)` must be a positive int, got 0"),
+    ({"hessian": "margin"},
+     r"`tune_newton\(hessian=\.\.\.\)` must be 'full' or 'margins', got 'margin'"),
+    ({"hessian": "margins", "hessian_every": 2},
+     r"`tune_newton\(hessian_every=\.\.\.\)` must be 1 with hessian='margins'"),
 ])
 def test_tune_newton_names_its_arguments(kwargs, match):
     drive, start, par, obj = _problem()

@@ -139,30 +139,59 @@ class Objective(eqx.Module):
                 raise ValueError(f"`Objective({name}=...)` must be positive, got "
                                  f"{getattr(self, name)!r}")
 
-    def __call__(self, controller: AbstractController, drive: BallScrewDrive,
-                 position_m: Float[ArrayLike, ""]) -> ObjectiveTerms:
-        """The terms of J at table position ``position_m`` (m)."""
+    def _checked(self, fn, controller, drive, position_m):
+        """The twin at the position and the discretisation that the run and the open loops
+        share (one discrete law and one zero-order-hold plant)."""
         if not isinstance(controller, AbstractController):
-            raise TypeError(f"`Objective(controller=...)` must be an fdjax controller, got "
+            raise TypeError(f"`{fn}(controller=...)` must be an fdjax controller, got "
                             f"{type(controller).__name__}")
         if not isinstance(drive, BallScrewDrive):
-            raise TypeError(f"`Objective(drive=...)` must be an fdjax.BallScrewDrive, got "
+            raise TypeError(f"`{fn}(drive=...)` must be an fdjax.BallScrewDrive, got "
                             f"{type(drive).__name__}")
-        position_m = drive._check_travel(position_m, "Objective")
+        position_m = drive._check_travel(position_m, fn)
         plant = state_space(drive, position_m, twin=self.twin)
-        # one discrete law and one zero-order-hold plant for the run and the open loops
-        method = SampledData().sharing(controller, plant, self.servo)
-        sim = simulate(controller, plant, self.reference, method, servo=self.servo,
-                       duration=self.duration, error_bound=self.error_bound_m, throw=False)
-        rms = sim.rms_error(self.output)
+        return plant, SampledData().sharing(controller, plant, self.servo)
+
+    def _penalty(self, controller, plant, method):
+        """Σ over the break points of the smooth margin penalties (unweighted)."""
         loops = open_loop(controller, plant, self.freq_hz, servo=self.servo, method=method)
         # the break points' loops as one batch: one penalty program for all of them
         Ls = jnp.stack([L for L in (loops.plant_input, loops.speed, loops.position)
                         if L is not None])
-        pen = jnp.sum(margin_penalty(Ls, modulus_margin=self.modulus_margin,
-                                     gain_margin_db=self.gain_margin_db,
-                                     phase_margin_deg=self.phase_margin_deg,
-                                     beta=self.margin_sharpness, width=self.margin_width))
+        return jnp.sum(margin_penalty(Ls, modulus_margin=self.modulus_margin,
+                                      gain_margin_db=self.gain_margin_db,
+                                      phase_margin_deg=self.phase_margin_deg,
+                                      beta=self.margin_sharpness, width=self.margin_width))
+
+    def margin_term(self, controller: AbstractController, drive: BallScrewDrive,
+                    position_m: Float[ArrayLike, ""]) -> Float[Array, ""]:
+        r"""The weighted margin penalties w_m Σ_breaks P_margin(L_b), the part of J computed
+        from the open loops on the frequency grid alone (no simulation): J minus this term is
+        the part that needs the run.  Equal to ``margin_weight`` × the ``margin_penalty`` of
+        :meth:`__call__`'s terms."""
+        plant, method = self._checked("Objective.margin_term", controller, drive, position_m)
+        return self.margin_weight * self._penalty(controller, plant, method)
+
+    def __call__(self, controller: AbstractController, drive: BallScrewDrive,
+                 position_m: Float[ArrayLike, ""]) -> ObjectiveTerms:
+        """The terms of J at table position ``position_m`` (m)."""
+        plant, method = self._checked("Objective", controller, drive, position_m)
+        pen = self._penalty(controller, plant, method)
+        return self._terms(controller, plant, method, pen)
+
+    def simulated_term(self, controller: AbstractController, drive: BallScrewDrive,
+                       position_m: Float[ArrayLike, ""]) -> Float[Array, ""]:
+        r"""J less its margin term (:meth:`margin_term`): the tracking error and the barriers,
+        from one run of the sampled loop and its poles, without the open loops."""
+        plant, method = self._checked("Objective.simulated_term", controller, drive,
+                                      position_m)
+        return self._terms(controller, plant, method, jnp.zeros(())).total
+
+    def _terms(self, controller, plant, method, pen) -> ObjectiveTerms:
+        """The terms of J from one run, the margin penalties ``pen`` given."""
+        sim = simulate(controller, plant, self.reference, method, servo=self.servo,
+                       duration=self.duration, error_bound=self.error_bound_m, throw=False)
+        rms = sim.rms_error(self.output)
         g = sim.growth_rate
         g_w = max(abs(self.max_growth_rate), 1.0)
         barrier = jax.nn.softplus((g - self.max_growth_rate) / g_w) ** 2
