@@ -248,6 +248,23 @@ def test_fdjax_help_does_not_import_jax():
     assert eager["code"] == 0 and heavy == [], eager
 
 
+def test_import_sets_the_scheduler_flag_also_after_jax():
+    """Imported after JAX (before its first array), fdjax still selects the sequential CPU
+    scheduler and float64; a flag the user set is kept."""
+    code = ("import os, jax\nimport fdjax\nimport jax.numpy as jnp\n"
+            "print(os.environ['XLA_FLAGS'], jnp.zeros(1).dtype)")
+    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAX_ENABLE_X64")}
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120, env=dict(env, JAX_PLATFORMS="cpu"))
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.split() == ["--xla_cpu_enable_concurrency_optimized_scheduler=false",
+                                  "float64"], run.stdout
+    mine = "--xla_cpu_enable_concurrency_optimized_scheduler=true"
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120, env=dict(env, JAX_PLATFORMS="cpu", XLA_FLAGS=mine))
+    assert run.returncode == 0 and run.stdout.split() == [mine, "float64"], run
+
+
 # ---------------------------------------------------------------------- reference settings
 def test_reference_module_imports_only_from_below():
     """_reference is domain code: it builds on the controllers, filters and the drive, never
