@@ -13,7 +13,7 @@ results (``benchmarks/results/tuning.json``) and, at one position (default 0.1 m
 * what trust-region Newton steps with that exact Hessian (``fdjax.tune_newton``) make of
   the valley.
 
-About 3 minutes on 2 cores (the Hessian's program takes most of it to compile).
+About 1.5 minutes on 2 cores (the Hessian's program takes most of it to compile).
 
 Usage:  python examples/tuning_landscape.py [--results benchmarks/results/tuning.json]
         [--position 0] [--newton-steps 30] [--out landscape.json]

@@ -135,6 +135,10 @@ def test_tune_newton_with_the_margins_hessian():
     terms = obj(c, drive, 0.115)
     np.testing.assert_allclose(float(obj.margin_term(c, drive, 0.115)),
                                float(obj.margin_weight * terms.margin_penalty), rtol=1e-12)
+    with pytest.raises(TypeError, match=r"`Objective\.simulated_term\(drive=\.\.\.\)` must be"):
+        obj.simulated_term(c, "drive", 0.115)
+    with pytest.raises(ValueError, match=r"`Objective\.margin_term\(position_m=\.\.\.\)`"):
+        obj.margin_term(c, drive, 115.0)
     j, g, g_m, H_m = _evaluate_split(par, obj, drive, y, theta)
     j_full, g_full, _ = _evaluate(par, obj, drive, y, theta)
     np.testing.assert_allclose(np.asarray(j), np.asarray(j_full), rtol=1e-12)

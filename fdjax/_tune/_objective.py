@@ -9,10 +9,12 @@ of the reference motion and the open loops on the unit circle:
                        + w_s softplus((g − g_max)/g_w)²                (closed-loop poles)
                        + w_c softplus((max|i| − i_max)/(0.05 i_max))²  (motor current),
 
-with e_rms the RMS error at the scale (or the tool point), P_margin the smooth penalties of
-:func:`margin_penalty` on every break point of the loop (plant input, speed feedback, scale),
-g the growth rate of the sampled closed loop's least stable pole (s = ln z / T; negative when
-stable) and max|i| the peak current command.  An unstable candidate gets a large, finite value
+(:meth:`Objective.margin_term` is the second line, from the open loops alone;
+:meth:`Objective.simulated_term` the rest, from one run), with e_rms the RMS error at the scale
+(or the tool point), P_margin the smooth penalties of :func:`margin_penalty` on every break
+point of the loop (plant input, speed feedback, scale), g the growth rate of the sampled
+closed loop's least stable pole (s = ln z / T; negative when stable) and max|i| the peak
+current command.  An unstable candidate gets a large, finite value
 and a finite gradient: the simulation stops at its error bound and freezes its outputs, the
 growth-rate barrier grows quadratically; nothing is NaN.  Final designs are then checked with
 the exact margins and the eigenvalues (:func:`fdjax.loop_margins`, :func:`fdjax.check_stability`).
