@@ -136,6 +136,7 @@ def train_schedule(
     if not isinstance(drive, BallScrewDrive):
         raise TypeError(f"`{fn}(drive=...)` must be an fdjax.BallScrewDrive, got "
                         f"{type(drive).__name__}")
+    objective = objective.resolved(drive, fn)
     for name, value, least in (("steps", steps, 1), ("batch", batch, 2), ("chunk", chunk, 1)):
         if not (isinstance(value, int) and value >= least):
             raise ValueError(f"`{fn}({name}=...)` must be an int ≥ {least}, got {value!r}")

@@ -92,7 +92,8 @@ def tune_local(
         progress: print the objective's mean and max after each chunk (to stderr).
     """
     fn = "tune_local"
-    pos = _check_common(fn, parameterisation, objective, drive, positions_m, steps, chunk)
+    pos, objective = _check_common(fn, parameterisation, objective, drive, positions_m,
+                                   steps, chunk)
     theta = _start(fn, parameterisation, start, pos.size)
     opt = default_optimiser("adam", 0.02) if optimiser is None else optimiser
     y = jnp.asarray(pos)
@@ -232,7 +233,7 @@ def _check_common(fn, parameterisation, objective, drive, positions_m, steps, ch
     for name, value in (("steps", steps), ("chunk", chunk)):
         if not (isinstance(value, int) and value >= 1):
             raise ValueError(f"`{fn}({name}=...)` must be a positive int, got {value!r}")
-    return pos
+    return pos, objective.resolved(drive, fn)
 
 
 def _start(fn, parameterisation, start, n):
@@ -314,7 +315,8 @@ def tune_robust(
     Other arguments as :func:`tune_local`.
     """
     fn = "tune_robust"
-    pos = _check_common(fn, parameterisation, objective, drive, positions_m, steps, chunk)
+    pos, objective = _check_common(fn, parameterisation, objective, drive, positions_m,
+                                   steps, chunk)
     if not (isinstance(sharpness, (int, float)) and sharpness > 0):
         raise ValueError(f"`{fn}(sharpness=...)` must be a positive number, got {sharpness!r}")
     if isinstance(start, AbstractController):
@@ -448,7 +450,8 @@ def tune_shared_gains(
     rows share the first ``n_shared`` entries; ``history`` is J per position at every step.
     """
     fn = "tune_shared_gains"
-    pos = _check_common(fn, parameterisation, objective, drive, positions_m, steps, chunk)
+    pos, objective = _check_common(fn, parameterisation, objective, drive, positions_m,
+                                   steps, chunk)
     theta = _start(fn, parameterisation, start, pos.size)
     n_par = theta.shape[1]
     if not (isinstance(n_shared, int) and 0 < n_shared < n_par):

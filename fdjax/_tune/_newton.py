@@ -231,7 +231,8 @@ def tune_newton(
         time after the first, which compiles.
     """
     fn = "tune_newton"
-    pos = _check_common(fn, parameterisation, objective, drive, positions_m, steps, 1)
+    pos, objective = _check_common(fn, parameterisation, objective, drive, positions_m, steps,
+                                   1)
     for name, value, ok, want in (
             ("radius", radius, lambda v: v > 0, "a positive number"),
             ("max_radius", max_radius, lambda v: v >= radius, f"a number ≥ radius = {radius!r}"),

@@ -22,6 +22,8 @@ the exact margins and the eigenvalues (:func:`fdjax.loop_margins`, :func:`fdjax.
 
 from __future__ import annotations
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -75,7 +77,8 @@ class Objective(eqx.Module):
         freq_hz: the frequency grid of the margin penalties (Hz), below the Nyquist frequency;
             dense enough around the loop's resonances.
         servo: the servo hardware (not tuned).
-        twin: how the drive becomes its twin (static).
+        twin: how the drive becomes its twin (static); the tuners fix its number of kept
+            modes for their drive first (:meth:`resolved`).
         output: ``"scale"`` (x2) or ``"tool"`` (x3), static.
         error_scale_m: e_ref (m).
         modulus_margin, gain_margin_db, phase_margin_deg: the requirements (static).
@@ -140,6 +143,13 @@ class Objective(eqx.Module):
             if not float(getattr(self, name)) > 0:
                 raise ValueError(f"`Objective({name}=...)` must be positive, got "
                                  f"{getattr(self, name)!r}")
+
+    def resolved(self, drive: BallScrewDrive, fn: str = "Objective") -> Objective:
+        """This objective with its twin's number of kept modes counted for ``drive`` (when the
+        twin leaves it to the band): the state size is then fixed before ``jit``/``vmap``/
+        ``grad`` see the drive, and the objective runs the same twin inside them as outside."""
+        twin = (TwinOptions() if self.twin is None else self.twin).resolve(drive, fn)
+        return self if twin == self.twin else dataclasses.replace(self, twin=twin)
 
     def _checked(self, fn, controller, drive, position_m):
         """The twin at the position and the discretisation that the run and the open loops

@@ -165,7 +165,8 @@ def tune_simplex(
     fn = "tune_simplex"
     if not (isinstance(evaluations, int) and evaluations >= 1):
         raise ValueError(f"`{fn}(evaluations=...)` must be a positive int, got {evaluations!r}")
-    pos = _check_common(fn, parameterisation, objective, drive, positions_m, evaluations, chunk)
+    pos, objective = _check_common(fn, parameterisation, objective, drive, positions_m,
+                                   evaluations, chunk)
     theta = _start(fn, parameterisation, start, pos.size)
     n_par = theta.shape[1]
     if evaluations <= n_par + 1:
