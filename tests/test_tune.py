@@ -289,3 +289,15 @@ def test_objective_names_itself_in_errors():
     with pytest.raises(ValueError, match=r"`Objective\(error_scale_m=\.\.\.\)` must be a "
                                          r"scalar, got shape \(2,\)"):
         fdjax.Objective(ref, np.geomspace(5.0, 3900.0, 64), error_scale_m=[1e-6, 1e-5])
+    # the grid where it is given, not at the first evaluation (nor inside a tuner's jit)
+    with pytest.raises(ValueError, match=r"`Objective\(freq_hz=\.\.\.\)` must be below the "
+                                         r"servo's Nyquist frequency 4000 Hz .*got 4015.43"):
+        fdjax.Objective(ref, np.geomspace(5.0, 5000.0, 64))
+    with pytest.raises(ValueError, match=r"`Objective\(freq_hz=\.\.\.\)` must be finite and "
+                                         r"positive, got 0 at index 0"):
+        fdjax.Objective(ref, np.linspace(0.0, 3000.0, 64))
+    with pytest.raises(ValueError, match=r"`Objective\(freq_hz=\.\.\.\)` must be strictly "
+                                         r"increasing"):
+        fdjax.Objective(ref, np.geomspace(3000.0, 5.0, 64))
+    # a servo at 16 kHz allows the grid up to its own Nyquist frequency
+    fdjax.Objective(ref, np.geomspace(5.0, 7900.0, 64), servo=fdjax.Servo(period=1 / 16000))

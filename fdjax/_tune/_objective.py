@@ -29,6 +29,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
+from .. import _checks
 from .._analysis import open_loop
 from .._checks import is_concrete
 from .._control._controllers import AbstractController
@@ -131,6 +132,12 @@ class Objective(eqx.Module):
         if f.ndim != 1 or f.shape[0] < 8:
             raise ValueError(f"`Objective(freq_hz=...)` must be a 1-D grid of at least 8 "
                              f"frequencies, got shape {f.shape}")
+        if is_concrete(f):  # checked where the grid is given, not at the first evaluation
+            where = "Objective(freq_hz=...)"
+            top = 0.5 / float(self.servo.period)
+            _checks.check(_checks.frequency_grid(f, where), lambda v: v < top, where,
+                          f"below the servo's Nyquist frequency {top:.6g} Hz (the margins "
+                          "are those of the sampled loop)")
         for name in ("error_scale_m", "margin_width", "margin_sharpness", "margin_weight",
                      "stability_weight", "current_weight"):
             v = getattr(self, name)
