@@ -334,7 +334,8 @@ def reproduce(out: str, quick: bool = False) -> dict:
     return summary
 
 
-# Where the designs shipped with fdjax live (written by `fdjax tune`).
+# Where the designs shipped with fdjax live (written by `fdjax tune`; what
+# `fdjax.load_designs()` reads without a folder).
 SHIPPED_DESIGNS = os.path.join(os.path.dirname(__file__), "data", "reference_designs")
 FIG18_POSITIONS_M = tuple(round(0.1 + 0.01 * k, 10) for k in range(61))
 

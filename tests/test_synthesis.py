@@ -119,6 +119,14 @@ def test_designs_round_trip_bit_for_bit(tmp_path):
             np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
     with pytest.raises(FileNotFoundError, match=r"`load_designs\(folder=\.\.\.\)`: no file"):
         fdjax.load_designs(tmp_path / "nothing")
+    # without a folder: the designs shipped with fdjax, those the command line evaluates
+    from fdjax import cli
+
+    shipped, meta = fdjax.load_designs()
+    assert list(shipped) == list(fdjax.CONTROLLERS), list(shipped)
+    assert isinstance(shipped["mcm_ata_e2e"], fdjax.ScheduledLoop)
+    same, _ = fdjax.load_designs(cli.SHIPPED_DESIGNS)
+    assert bool(eqx.tree_equal(shipped, same))
 
 
 # ------------------------------------------------------------------ certification

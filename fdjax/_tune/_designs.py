@@ -78,10 +78,19 @@ def save_designs(folder: str | os.PathLike, controllers: dict[str, AbstractContr
         json.dump(meta, f, indent=2, ensure_ascii=False)
 
 
-def load_designs(folder: str | os.PathLike) -> tuple[dict[str, AbstractController], dict]:
+SHIPPED = os.path.join(os.path.dirname(os.path.dirname(__file__)), "data", "reference_designs")
+"""The designs shipped with fdjax: Fig. 18's seven controllers, tuned by ``fdjax tune`` for
+:func:`fdjax.reference_drive`."""
+
+
+def load_designs(
+    folder: str | os.PathLike | None = None,
+) -> tuple[dict[str, AbstractController], dict]:
     """Read the controllers written by :func:`save_designs`: (dict name → controller, the
-    metadata)."""
-    folder = os.fspath(folder)
+    metadata).  Without a folder: the designs shipped with fdjax (Fig. 18's seven controllers
+    for the reference drive, ``"mcm_ata_e2e"`` the end-to-end schedule; the metadata says how
+    they were tuned)."""
+    folder = SHIPPED if folder is None else os.fspath(folder)
     leaves, meta_path = (os.path.join(folder, n) for n in ("controllers.eqx", "controllers.json"))
     for p in (leaves, meta_path):
         if not os.path.exists(p):
