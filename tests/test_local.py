@@ -144,6 +144,10 @@ def test_tune_simplex_improves_every_position_and_names_its_arguments():
         fdjax.tune_simplex(par, obj, drive, pos, start, evaluations=10)
     with pytest.raises(ValueError, match=r"`tune_simplex\(positions_m=\.\.\.\)` must be inside"):
         fdjax.tune_simplex(par, obj, drive, np.array([300.0]), start)
+    with pytest.raises(TypeError, match=r"`tune_simplex\(start=\.\.\.\)` must be a controller "
+                                        r"of the parameterisation \(DoubleLoopParameterisation\) "
+                                        r"or θ, got PIDLoop"):
+        fdjax.tune_simplex(par, obj, drive, pos, fdjax.PIDLoop())
 
 
 def test_descend_counts_every_evaluation_of_the_loss():

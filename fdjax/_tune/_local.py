@@ -239,7 +239,13 @@ def _check_common(fn, parameterisation, objective, drive, positions_m, steps, ch
 def _start(fn, parameterisation, start, n):
     n_par = len(parameterisation.names)
     if isinstance(start, AbstractController):
-        start = jnp.broadcast_to(parameterisation.from_controller(start), (n, n_par))
+        try:
+            theta0 = parameterisation.from_controller(start)
+        except TypeError as e:  # a controller of another kind: name the tuner's argument
+            raise TypeError(f"`{fn}(start=...)` must be a controller of the parameterisation "
+                            f"({type(parameterisation).__name__}) or θ, got "
+                            f"{type(start).__name__}: {e}") from None
+        start = jnp.broadcast_to(theta0, (n, n_par))
     theta = jnp.asarray(start, jnp.float64)
     if theta.shape == (n_par,):  # one θ for every position
         theta = jnp.broadcast_to(theta, (n, n_par))
