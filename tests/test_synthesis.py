@@ -164,7 +164,7 @@ def test_certify_is_loop_margins_and_stability_at_each_position():
     assert not bad.ok and not bool(bad.stable[-1])
     assert "NOT certified" in bad.message and "unstable at" in bad.message
     assert bad.worst("modulus_margin")[0] == 0.7
-    with pytest.raises(ValueError, match=r"`certify\(position_m=\.\.\.\)` must be inside the "
+    with pytest.raises(ValueError, match=r"`certify\(positions_m=\.\.\.\)` must be inside the "
                                          r"travel"):
         fdjax.certify(ref, drive, [115.0])
 
@@ -199,3 +199,14 @@ def test_synthesise_names_its_arguments():
         fdjax.synthesise(margin_width=0, progress=False)
     with pytest.raises(TypeError, match=r"`synthesise\(drive=\.\.\.\)` must be an fdjax"):
         fdjax.synthesise("drive.json", progress=False)
+    with pytest.raises(TypeError, match=r"`synthesise\(servo=\.\.\.\)` must be an fdjax"):
+        fdjax.synthesise(servo=8000, progress=False)
+    # the counts of every stage before the first one runs (the robust MCM's is the last)
+    for kwargs, match in (({"robust_steps": -1}, r"robust_steps=\.\.\.\)` must be an int ≥ 1, "
+                                                 r"got -1"),
+                          ({"e2e_positions": 1}, r"e2e_positions=\.\.\.\)` must be an int ≥ 2"),
+                          ({"local_steps": 2.5}, r"local_steps=\.\.\.\)` must be an int ≥ 1"),
+                          ({"simplex_evaluations": 13},
+                           r"simplex_evaluations=\.\.\.\)` must be an int ≥ 14, got 13")):
+        with pytest.raises(ValueError, match=r"`synthesise\(" + match):
+            fdjax.synthesise(progress=False, **kwargs)

@@ -117,11 +117,12 @@ class BallScrewDrive(eqx.Module):
                 + self.carriage.axial_damping * self.screw.ratio**2)
 
     # ------------------------------------------------------------------ input checks
-    def _check_travel(self, position_m, fn: str) -> Array:
+    def _check_travel(self, position_m, fn: str, param: str = "position_m") -> Array:
         """Table positions of any shape: real, finite, inside ``travel_m`` and with the nut
         inside the screw; returned as float64 (guarded when traced).  ``fn`` is the function
-        the user called, e.g. ``"BallScrewDrive.receptance"`` or ``"simulate"``."""
-        where = f"{fn}(position_m=...)"
+        the user called, e.g. ``"BallScrewDrive.receptance"`` or ``"simulate"``, ``param`` the
+        name of its argument."""
+        where = f"{fn}({param}=...)"
         pos = _checks.real_array(position_m, where)
         lo, hi = self.travel_m
         pos = _checks.inside(pos, lo, hi, where)

@@ -213,7 +213,7 @@ def certify(
     y = np.atleast_1d(np.asarray(positions_m, float))
     if y.ndim != 1:
         raise ValueError(f"`{fn}(positions_m=...)` must be 1-D, got shape {y.shape}")
-    y = np.asarray(drive._check_travel(y, fn))
+    y = np.asarray(drive._check_travel(y, fn, "positions_m"))
     f = default_grid(servo) if freq_hz is None else np.asarray(freq_hz, float)
     twin = (TwinOptions() if twin is None else twin).resolve(drive, fn)
     release()

@@ -185,6 +185,11 @@ def _say(progress, text):
         print(text, file=sys.stderr, flush=True)
 
 
+def _count(name, value, least):
+    if isinstance(value, bool) or not (isinstance(value, int) and value >= least):
+        raise ValueError(f"`synthesise({name}=...)` must be an int ≥ {least}, got {value!r}")
+
+
 def synthesise(
     drive: BallScrewDrive | None = None,
     *,
@@ -227,10 +232,20 @@ def synthesise(
         raise TypeError(f"`synthesise(drive=...)` must be an fdjax.BallScrewDrive, got "
                         f"{type(drive).__name__}")
     servo = reference_servo() if servo is None else servo
+    if not isinstance(servo, Servo):
+        raise TypeError(f"`synthesise(servo=...)` must be an fdjax.Servo, got "
+                        f"{type(servo).__name__}")
     seconds = {}
     if not (isinstance(margin_width, (int, float)) and margin_width > 0):
         raise ValueError(f"`synthesise(margin_width=...)` must be a positive number, got "
                          f"{margin_width!r}")
+    # every count before the first stage, not when its stage comes minutes later
+    for name, value, least in (
+            ("local_steps", local_steps, 1), ("refine_steps", refine_steps, 1),
+            ("shared_steps", shared_steps, 1), ("pid_steps", pid_steps, 1),
+            ("network_steps", network_steps, 1), ("e2e_steps", e2e_steps, 1),
+            ("e2e_positions", e2e_positions, 2), ("robust_steps", robust_steps, 1)):
+        _count(name, value, least)
     obj = tuning_objective(servo, feedforward=feedforward, margin_width=margin_width)
     # a continuation in the penalties' width: the wide ones find and descend a basin from
     # afar, the sharp ones take the design up to its requirements
@@ -238,6 +253,8 @@ def synthesise(
     bounds = MCMBounds.for_servo(servo)
     ref = reference_controller(drive, servo)
     par = DoubleLoopParameterisation(bounds, ref, feedforward=feedforward)
+    # more evaluations than the MCM's simplex has vertices
+    _count("simplex_evaluations", simplex_evaluations, len(par.names) + 2)
     start = eqx.tree_at(lambda c: c.log_kv, ref, ref.log_kv + math.log(0.5))
     design = np.asarray(DESIGN_POSITIONS_M)
 
@@ -375,7 +392,7 @@ def evaluate(
     positions) and ``certificate``.  Controllers of the same kind share one compiled program."""
     servo = reference_servo() if servo is None else servo
     motion = tuning_motion() if motion is None else motion
-    y = np.asarray(drive._check_travel(np.asarray(positions_m, float), "evaluate"))
+    y = np.asarray(drive._check_travel(np.asarray(positions_m, float), "evaluate", "positions_m"))
     release()
     twin = TwinOptions().resolve(drive, "evaluate")
     f = default_grid(servo)
