@@ -52,7 +52,6 @@ from jax.flatten_util import ravel_pytree
 
 import fdjax
 from fdjax._memory import release
-from fdjax.cli import SHIPPED_DESIGNS
 
 SIMPLEX_STEP = 0.05
 SHARPNESS = 2.0
@@ -61,7 +60,7 @@ SIMS_PER_GRADIENT = 2  # one forward and one reverse pass per position
 
 def setup(n_positions):
     drive = fdjax.reference_drive()
-    designs, _ = fdjax.load_designs(SHIPPED_DESIGNS)
+    designs, _ = fdjax.load_designs()
     schedule = designs["mcm_ata"]
     obj = fdjax.tuning_objective(margin_width=0.01)
     y = np.linspace(*drive.travel_m, n_positions)

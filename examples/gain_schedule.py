@@ -41,7 +41,6 @@ import optax
 
 import fdjax
 from fdjax._control._reference import reference_servo
-from fdjax.cli import SHIPPED_DESIGNS
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from screw_end_design import THETA, sharp_objective  # noqa: E402
@@ -57,7 +56,7 @@ def main(argv=None):
     ap.add_argument("--out", default=None, help="write the schedule here (.eqx and .json)")
     args = ap.parse_args(argv)
     drive, servo = fdjax.reference_drive(), reference_servo()
-    shipped, _ = fdjax.load_designs(SHIPPED_DESIGNS)
+    shipped, _ = fdjax.load_designs()
     bounds = shipped["mcm_ata"].bounds
     if args.from_screw_end:
         par = fdjax.DoubleLoopParameterisation(bounds, fdjax.reference_controller(drive, servo),

@@ -34,7 +34,6 @@ import numpy as np
 import optax
 
 import fdjax
-import fdjax.cli
 
 Y0 = 0.1  # start of the stroke (m)
 
@@ -62,7 +61,7 @@ def main():
     drive = fdjax.reference_drive()
     motion = long_stroke()
     twin = fdjax.TwinOptions(kept_modes=6)
-    designs, _ = fdjax.load_designs(fdjax.cli.SHIPPED_DESIGNS)
+    designs, _ = fdjax.load_designs()
     print(f"long stroke 100 → 700 → 100 mm, {float(motion.duration):.2f} s, moving table")
     evaluate = eqx.filter_jit(lambda c: rms_um(c, drive, motion, twin))
     for name in ("mcm_fixed", "mcm_ata", "mcm_ata_e2e"):

@@ -31,7 +31,6 @@ import numpy as np
 import optax
 
 import fdjax
-import fdjax.cli
 from fdjax._control._reference import reference_pid, reference_servo
 
 ROBUST_M = np.linspace(0.1, 0.7, 13)          # where the robust PID is tuned (as synthesise)
@@ -50,7 +49,7 @@ def main():
 
     drive = fdjax.reference_drive()
     servo = reference_servo()
-    shipped, _ = fdjax.load_designs(fdjax.cli.SHIPPED_DESIGNS)
+    shipped, _ = fdjax.load_designs()
     wide = fdjax.tuning_objective(servo, margin_width=0.05)
     alone = dataclasses.replace(wide, margin_weight=0.0)
     mcm_par = fdjax.DoubleLoopParameterisation(fdjax.MCMBounds.for_servo(servo),

@@ -59,7 +59,6 @@ import fdjax
 from fdjax._control._reference import reference_servo
 from fdjax._tune._optimisers import default_optimiser
 from fdjax._tune._synthesis import DESIGN_POSITIONS_M
-from fdjax.cli import SHIPPED_DESIGNS
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from screw_end_design import THETA  # noqa: E402
@@ -110,7 +109,7 @@ def main(argv=None):
     par = fdjax.DoubleLoopParameterisation(bounds, fdjax.reference_controller(drive, servo),
                                            feedforward=False)
     obj = fdjax.tuning_objective(servo, margin_width=0.01)
-    shipped, _ = fdjax.load_designs(SHIPPED_DESIGNS)
+    shipped, _ = fdjax.load_designs()
     if args.from_reference:
         from_reference(par, obj, drive, servo)
     name = "robust, from the screw-end design"

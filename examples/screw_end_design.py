@@ -41,7 +41,6 @@ import numpy as np
 
 import fdjax
 from fdjax._control._reference import reference_servo
-from fdjax.cli import SHIPPED_DESIGNS
 
 THETA = [0.8237570863265421, -2.033553334826528, -0.8533367494349249, 4.01335855060909,
          2.176487103106046, 19.33179408657672, 0.5539018743676887, -0.010639035313014689,
@@ -67,7 +66,7 @@ def main(argv=None):
                                            fdjax.reference_controller(drive, servo),
                                            feedforward=False)
     design = par.to_controller(np.asarray(THETA))
-    shipped, _ = fdjax.load_designs(SHIPPED_DESIGNS)
+    shipped, _ = fdjax.load_designs()
     pk, nt = design.mcm.peak, design.mcm.notch
     print(f"design: k_p {design.kp:.1f} 1/s, k_v {design.kv:.1f} A·s/m, k_i {design.ki:.2f} "
           f"rad/s; peak K {float(pk.K[0]):.2f}, {float(pk.omega[0]) / (2 * math.pi):.1f} Hz, "
