@@ -87,6 +87,17 @@ def test_save_and_load_are_bit_exact(tmp_path):
     assert back.bounds == sched.bounds and back.network.travel_m == (0.1, 0.7)
     with pytest.raises(FileNotFoundError, match=r"`load_schedule\(path=\.\.\.\)`: no file"):
         fdjax.load_schedule(tmp_path / "missing.eqx")
+    # the leaves without their JSON; the JSON given for the leaves; a folder that is not there
+    (tmp_path / "lone.eqx").write_bytes(b"")
+    with pytest.raises(FileNotFoundError, match=r"no file .*lone\.json' \(the hyperparameters "
+                                                r"that save_schedule writes beside"):
+        fdjax.load_schedule(tmp_path / "lone.eqx")
+    for fn in (fdjax.load_schedule, lambda p: fdjax.save_schedule(p, sched)):
+        with pytest.raises(ValueError, match=r"_schedule\(path=\.\.\.\)` must be the schedule's "
+                                             r"leaves \(e\.g\. 'schedule\.eqx'\), not the JSON"):
+            fn(tmp_path / "s.json")
+    with pytest.raises(FileNotFoundError, match=r"`save_schedule\(path=\.\.\.\)`: no folder"):
+        fdjax.save_schedule(tmp_path / "no" / "s.eqx", sched)
 
 
 def test_filter_table_is_the_schedule_in_drive_units():
@@ -217,9 +228,13 @@ def test_end_to_end_on_fixed_positions_by_lbfgs():
     obj = fdjax.Objective(motion, np.geomspace(5.0, 3900.0, 64),
                           twin=fdjax.TwinOptions(kept_modes=4), error_scale_m=1e-4)
     y = np.array([0.1, 0.4, 0.7])
-    with pytest.raises(ValueError, match=r"`train_schedule\(positions_m=\.\.\.\)` must be a "
-                                         r"non-empty 1-D array inside the travel"):
+    with pytest.raises(ValueError, match=r"`train_schedule\(positions_m=\.\.\.\)` must be inside "
+                                         r"the travel \[0.1, 0.7\] m, got 400 at index 1; table "
+                                         r"positions are in metres: 400 mm is 0.4 m"):
         fdjax.train_schedule(start, obj, drive, positions_m=[0.1, 400.0])
+    with pytest.raises(ValueError, match=r"`train_schedule\(positions_m=\.\.\.\)` must be a "
+                                         r"non-empty 1-D array, got shape \(0,\)"):
+        fdjax.train_schedule(start, obj, drive, positions_m=[])
     trained, rec = fdjax.train_schedule(start, obj, drive, steps=3, chunk=3, positions_m=y,
                                         optimiser=optax.lbfgs())
     j = np.asarray(eqx.filter_jit(jax.vmap(lambda p: obj(start, drive, p).total))(

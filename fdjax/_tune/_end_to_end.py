@@ -25,6 +25,7 @@ import numpy as np
 import optax
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
+from .. import _checks
 from .._drive._model import BallScrewDrive
 from ._local import Descent, descend, smooth_max
 from ._objective import Objective
@@ -153,9 +154,10 @@ def train_schedule(
     if positions_m is not None:
         fixed = np.asarray(positions_m, np.float64)
         lo, hi = drive.travel_m
-        if fixed.ndim != 1 or fixed.size == 0 or not np.all((fixed >= lo) & (fixed <= hi)):
-            raise ValueError(f"`{fn}(positions_m=...)` must be a non-empty 1-D array inside "
-                             f"the travel [{lo:.6g}, {hi:.6g}] m, got {fixed.tolist()}")
+        if fixed.ndim != 1 or fixed.size == 0:
+            raise ValueError(f"`{fn}(positions_m=...)` must be a non-empty 1-D array, got "
+                             f"shape {fixed.shape}")
+        _checks.inside(fixed, lo, hi, f"{fn}(positions_m=...)")
         fixed = jnp.asarray(fixed)
     else:
         fixed = None

@@ -353,6 +353,15 @@ def _hyperparameters(schedule: ScheduledLoop, extra: dict | None) -> dict:
     }
 
 
+def _schedule_path(fn, path):
+    """The leaves' path; the JSON beside it takes the suffix .json, so the path cannot."""
+    path = os.fspath(path)
+    if os.path.splitext(path)[1].lower() == ".json":
+        raise ValueError(f"`{fn}(path=...)` must be the schedule's leaves (e.g. "
+                         f"'schedule.eqx'), not the JSON beside them, got {path!r}")
+    return path
+
+
 def save_schedule(path: str | os.PathLike, schedule: ScheduledLoop, *,
                   metadata: dict | None = None) -> None:
     """Write ``schedule`` to ``path`` (its leaves, ``eqx.tree_serialise_leaves``) and its
@@ -362,7 +371,10 @@ def save_schedule(path: str | os.PathLike, schedule: ScheduledLoop, *,
     if not isinstance(schedule, ScheduledLoop):
         raise TypeError(f"`save_schedule(schedule=...)` must be an fdjax.ScheduledLoop, got "
                         f"{type(schedule).__name__}")
-    path = os.fspath(path)
+    path = _schedule_path("save_schedule", path)
+    folder = os.path.dirname(path)
+    if folder and not os.path.isdir(folder):
+        raise FileNotFoundError(f"`save_schedule(path=...)`: no folder {folder!r}")
     meta = _hyperparameters(schedule, metadata)
     eqx.tree_serialise_leaves(path, schedule)
     with open(os.path.splitext(path)[0] + ".json", "w") as f:
@@ -372,11 +384,13 @@ def save_schedule(path: str | os.PathLike, schedule: ScheduledLoop, *,
 def load_schedule(path: str | os.PathLike) -> ScheduledLoop:
     """Read a schedule written by :func:`save_schedule` (the leaves at ``path``, the
     hyperparameters from the JSON file beside it)."""
-    path = os.fspath(path)
+    path = _schedule_path("load_schedule", path)
     meta_path = os.path.splitext(path)[0] + ".json"
-    for p in (path, meta_path):
-        if not os.path.exists(p):
-            raise FileNotFoundError(f"`load_schedule(path=...)`: no file {p!r}")
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"`load_schedule(path=...)`: no file {path!r}")
+    if not os.path.exists(meta_path):
+        raise FileNotFoundError(f"`load_schedule(path=...)`: no file {meta_path!r} (the "
+                                f"hyperparameters that save_schedule writes beside {path!r})")
     with open(meta_path) as f:
         meta = json.load(f)
     if meta.get("format") != _FORMAT:
