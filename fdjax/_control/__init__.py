@@ -6,6 +6,7 @@ from ._blocks import (
     PI as PI,
     PID as PID,
     AbstractBlock as AbstractBlock,
+    DiscreteBlock as DiscreteBlock,
     FilterBlock as FilterBlock,
     pade as pade,
 )
@@ -16,6 +17,7 @@ from ._controllers import (
     Law as Law,
     Path as Path,
     PIDLoop as PIDLoop,
+    SampledLaw as SampledLaw,
 )
 from ._export import to_python_control as to_python_control
 from ._interconnect import (

@@ -6,6 +6,9 @@ A block is a single-input single-output LTI element with
 * ``continuous()``: its realisation in s (an :class:`fdjax.LTI`, B (n, 1), C (1, n), D (1, 1));
 * ``discrete(period, filter_method)``: what the servo runs at period T (default: Tustin's rule
   of the continuous realisation; a filter uses its own discretisation, paper Eqs. 3–4);
+* ``discretised(period, filter_method)``: that discrete element, holding both its
+  realisation (``state_space()``) and its response (``transfer(z)``, a closed form where the
+  block has one, e.g. a filter's second-order sections);
 * ``transfer(s)`` and ``discrete_transfer(z, period, filter_method)``: its response, exact
   (from the realisation unless a block knows a closed form).
 
@@ -27,7 +30,8 @@ from .. import _checks
 from .._filters import AbstractFilter
 from .._lti import LTI, tustin
 
-__all__ = ["AbstractBlock", "PI", "PID", "FilterBlock", "pade", "DEFAULT_PADE_ORDER"]
+__all__ = ["AbstractBlock", "DiscreteBlock", "PI", "PID", "FilterBlock", "pade",
+           "DEFAULT_PADE_ORDER"]
 
 DEFAULT_PADE_ORDER = 6
 """Default order n of the [n/n] Padé delay of the continuous closed loop.  The approximant is
@@ -50,6 +54,22 @@ def _siso(A, B, C, D, dt=None) -> LTI:
     )
 
 
+class DiscreteBlock(eqx.Module):
+    """A block as the servo runs it, by its discrete realisation: ``state_space()`` and the
+    response ``transfer(z)`` from it (a filter's discrete element is its
+    :class:`fdjax.DiscreteFilter`, with the same two methods)."""
+
+    lti: LTI
+
+    def state_space(self) -> LTI:
+        """The discrete realisation (A, B (n, 1), C (1, n), D (1, 1), dt)."""
+        return self.lti
+
+    def transfer(self, z: Complex[ArrayLike, "*shape"]) -> Complex[Array, "*shape"]:
+        """C (zI − A)⁻¹ B + D at complex z of any shape."""
+        return self.lti.transfer(z)[..., 0, 0]
+
+
 class AbstractBlock(eqx.Module):
     """A SISO LTI element of a controller's law (module docstring)."""
 
@@ -66,11 +86,17 @@ class AbstractBlock(eqx.Module):
         """The response at complex s."""
         return self.continuous().transfer(s)[..., 0, 0]
 
+    def discretised(self, period: Float[Array, ""], filter_method: str = "fitted"):
+        """The discrete element (:meth:`discrete`) with its response: an object with
+        ``state_space()`` and ``transfer(z)``; what a sampled law is built from (its
+        realisation and its open loops' response come from the same discretisation)."""
+        return DiscreteBlock(self.discrete(period, filter_method))
+
     def discrete_transfer(
         self, z: Complex[ArrayLike, "*shape"], period, filter_method: str = "fitted"
     ) -> Complex[Array, "*shape"]:
         """The discrete element's response at complex z."""
-        return self.discrete(period, filter_method).transfer(z)[..., 0, 0]
+        return self.discretised(period, filter_method).transfer(z)
 
 
 class PI(AbstractBlock):
@@ -122,13 +148,14 @@ class FilterBlock(AbstractBlock):
         return self.filter.state_space()
 
     def discrete(self, period, filter_method: str = "fitted") -> LTI:
-        return self.filter.discretize(period, filter_method).state_space()
+        return self.discretised(period, filter_method).state_space()
+
+    def discretised(self, period, filter_method: str = "fitted"):
+        # the discrete filter itself: its response is its sections' closed form
+        return self.filter.discretize(period, filter_method)
 
     def transfer(self, s):
         return self.filter.transfer(s)
-
-    def discrete_transfer(self, z, period, filter_method: str = "fitted"):
-        return self.filter.discretize(period, filter_method).transfer(z)
 
 
 def as_block(x, where: str) -> AbstractBlock:

@@ -33,10 +33,12 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .. import _checks
 from .._filters import MCM, AbstractFilter
+from .._lti import LTI, series
 from ._blocks import PI, PID, AbstractBlock, as_block
 from ._servo import REFERENCE_K_MOTOR
 
-__all__ = ["AbstractController", "DoubleLoop", "PIDLoop", "Path", "Law", "LAW_SIGNALS"]
+__all__ = ["AbstractController", "DoubleLoop", "PIDLoop", "Path", "Law", "SampledLaw",
+           "LAW_SIGNALS"]
 
 LAW_SIGNALS = ("r", "r_dot", "r_ddot", "x2", "v_m")
 """Inputs of a controller's law: reference position (m), velocity (m/s), acceleration (m/s²),
@@ -89,25 +91,88 @@ class Law(eqx.Module):
 
     def transfer(self, s) -> Array:
         """K(s), shape (*s.shape, 5): the law's response from each signal to u."""
-        s = jnp.asarray(s)
-        out = 0.0
-        for p in self.paths:
-            g = jnp.ones(s.shape, jnp.complex128)
-            for b in p.blocks:
-                g = g * b.transfer(s)
-            out = out + g[..., None] * p.row().astype(jnp.complex128)
-        return out
+        return _response([p.row() for p in self.paths],
+                         [[b.transfer for b in p.blocks] for p in self.paths], s)
+
+    def realisation(self) -> LTI:
+        """The continuous law as one LTI from w to u (each path's chain of blocks, in series,
+        side by side)."""
+        return _realise([p.row() for p in self.paths],
+                        [[b.continuous() for b in p.blocks] for p in self.paths], None)
+
+    def discretised(self, period, filter_method: str = "fitted") -> SampledLaw:
+        """The law as the servo runs it at period T: every block discretised once
+        (:meth:`fdjax.AbstractBlock.discretised`)."""
+        return SampledLaw(
+            tuple(p.row() for p in self.paths),
+            tuple(tuple(b.discretised(period, filter_method) for b in p.blocks)
+                  for p in self.paths),
+            jnp.asarray(period, jnp.float64),
+        )
 
     def discrete_transfer(self, z, period, filter_method: str) -> Array:
         """K_d(z), shape (*z.shape, 5): the sampled law's response."""
-        z = jnp.asarray(z)
-        out = 0.0
-        for p in self.paths:
-            g = jnp.ones(z.shape, jnp.complex128)
-            for b in p.blocks:
-                g = g * b.discrete_transfer(z, period, filter_method)
-            out = out + g[..., None] * p.row().astype(jnp.complex128)
-        return out
+        return self.discretised(period, filter_method).transfer(z)
+
+
+class SampledLaw(eqx.Module):
+    r"""A law with each block discretised as the servo runs it: per path, the signal row and
+    the blocks' discrete elements.  The sampled loop's realisation (:meth:`realisation`) and the
+    open loops' response K_d(z) = Σ_p G_p,1(z) ⋯ G_p,k(z) · row_p (:meth:`transfer`, each
+    element's own response, e.g. a filter's sections in closed form: no solve with the law's
+    whole state matrix) come from the same elements."""
+
+    rows: tuple[Array, ...]
+    elements: tuple[tuple, ...]
+    period: Array
+
+    def realisation(self) -> LTI:
+        """The discrete law as one LTI from w to u."""
+        return _realise(self.rows, [[e.state_space() for e in es] for es in self.elements],
+                        self.period)
+
+    def transfer(self, z) -> Array:
+        """K_d(z), shape (*z.shape, 5)."""
+        return _response(self.rows, [[e.transfer for e in es] for es in self.elements], z)
+
+
+def _response(rows, chains, x) -> Array:
+    """Σ_p Π_b G_p,b(x) · row_p, shape (*x.shape, 5), from each block's response function."""
+    x = jnp.asarray(x)
+    out = 0.0
+    for row, chain in zip(rows, chains):
+        g = jnp.ones(x.shape, jnp.complex128)
+        for response in chain:
+            g = g * response(x)
+        out = out + g[..., None] * row.astype(jnp.complex128)
+    return out
+
+
+def _realise(rows, chains, dt) -> LTI:
+    """Σ over paths of (chain in series)(row · w) as one LTI from w to u: the paths' states
+    side by side."""
+    parts = []
+    for row, chain in zip(rows, chains):
+        row = row[None, :]
+        if not chain:
+            parts.append((jnp.zeros((0, 0)), jnp.zeros((0, len(LAW_SIGNALS))),
+                          jnp.zeros((1, 0)), row))
+            continue
+        lti = chain[0]
+        for b in chain[1:]:
+            lti = series(lti, b)
+        parts.append((lti.A, lti.B @ row, lti.C, lti.D @ row))
+    n = sum(x[0].shape[0] for x in parts)
+    A = jnp.zeros((n, n), jnp.float64)
+    i = 0
+    for x in parts:
+        k = x[0].shape[0]
+        A = A.at[i:i + k, i:i + k].set(x[0])
+        i += k
+    B = jnp.concatenate([x[1] for x in parts], 0)
+    C = jnp.concatenate([x[2] for x in parts], 1)
+    D = sum(x[3] for x in parts)
+    return LTI(A, B, C, D, None if dt is None else jnp.asarray(dt, jnp.float64))
 
 
 class AbstractController(eqx.Module):

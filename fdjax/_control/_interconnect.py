@@ -31,9 +31,9 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array
 
-from .._lti import LTI, series, transfer, transfer_hessenberg, zoh
+from .._lti import LTI, transfer, transfer_hessenberg, zoh
 from ._blocks import delay_frf, pade_ss
-from ._controllers import LAW_SIGNALS, Law
+from ._controllers import LAW_SIGNALS, Law, SampledLaw
 
 __all__ = [
     "CLOSED_LOOP_INPUTS",
@@ -59,40 +59,12 @@ def _c(x) -> Array:
     return jnp.asarray(x).astype(jnp.complex128)
 
 
-def _block_diag(mats) -> Array:
-    rows = sum(m.shape[0] for m in mats)
-    cols = sum(m.shape[1] for m in mats)
-    out = jnp.zeros((rows, cols), jnp.float64)
-    i = j = 0
-    for m in mats:
-        out = out.at[i : i + m.shape[0], j : j + m.shape[1]].set(m)
-        i, j = i + m.shape[0], j + m.shape[1]
-    return out
-
-
 def realise_law(law: Law, *, period=None, filter_method: str = "fitted") -> LTI:
     """The law as one LTI from w = (r, ṙ, r̈, x2, v_m) to u: continuous (``period`` None) or
     as the servo runs it at ``period`` (each block's own discretisation)."""
-    parts = []
-    for p in law.paths:
-        row = p.row()[None, :]
-        if not p.blocks:
-            parts.append((jnp.zeros((0, 0)), jnp.zeros((0, _NW)), jnp.zeros((1, 0)), row))
-            continue
-        lti = [
-            b.continuous() if period is None else b.discrete(period, filter_method)
-            for b in p.blocks
-        ]
-        chain = lti[0]
-        for b in lti[1:]:
-            chain = series(chain, b)
-        parts.append((chain.A, chain.B @ row, chain.C, chain.D @ row))
-    A = _block_diag([x[0] for x in parts])
-    B = jnp.concatenate([x[1] for x in parts], 0)
-    C = jnp.concatenate([x[2] for x in parts], 1)
-    D = sum(x[3] for x in parts)
-    dt = None if period is None else jnp.asarray(period, jnp.float64)
-    return LTI(A, B, C, D, dt)
+    if period is None:
+        return law.realisation()
+    return law.discretised(period, filter_method).realisation()
 
 
 class _Rows:
@@ -162,15 +134,12 @@ def continuous_closed_loop(law: Law, plant, k_motor, tau, pade_order: int) -> LT
     return LTI(rows[:, :n], rows[:, n:], Y[:, :n], Y[:, n:], None, plant.position_m)
 
 
-def discrete_law(law: Law, period, filter_method: str) -> LTI:
-    return realise_law(law, period=period, filter_method=filter_method)
-
-
 class SampledParts(eqx.Module):
-    """What the sampled loop is built from at one position: the discrete law K (the servo's
-    realisation of the law at period T) and the zero-order-hold plant (Φ, Γ) from (T1, F3)."""
+    """What the sampled loop is built from at one position: the law discretised block by
+    block (``sampled``; its realisation K runs in the closed loop, its response in the open
+    loops) and the zero-order-hold plant (Φ, Γ) from (T1, F3)."""
 
-    law: LTI
+    sampled: SampledLaw
     Phi: Array
     Gam: Array
 
@@ -178,7 +147,12 @@ class SampledParts(eqx.Module):
     def of(cls, law: Law, plant, period, filter_method: str) -> SampledParts:
         h = jnp.asarray(period, jnp.float64)
         Phi, Gam = zoh(plant.A, plant.B, h)
-        return cls(discrete_law(law, h, filter_method), Phi, Gam)
+        return cls(law.discretised(h, filter_method), Phi, Gam)
+
+    @property
+    def law(self) -> LTI:
+        """The discrete law's realisation K."""
+        return self.sampled.realisation()
 
 
 def sampled_closed_loop_matrices(parts: SampledParts, plant, k_motor, period, d: int) -> LTI:
@@ -279,9 +253,9 @@ def continuous_open_loops(law: Law, ch: Channels, omega, k_motor, tau, pade_orde
     return open_loops(law.transfer(s), P, ch, law.reads("x2"), law.reads("v_m"))
 
 
-def sampled_open_loops(law_d: LTI, reads, sp: SampledPlant, omega, k_motor, d: int):
+def sampled_open_loops(law_d: SampledLaw, reads, sp: SampledPlant, omega, k_motor, d: int):
     z = jnp.exp(_c(omega * sp.period) * 1j)
-    # the law's first output (the current command) from each signal: one solve per z
-    K = transfer(law_d.A, law_d.B, law_d.C[:1], law_d.D[:1], z)[..., 0, :]
+    # the current command from each signal: the discrete blocks' responses, path by path
+    K = law_d.transfer(z)
     P = _c(k_motor) * z ** (-d)
     return open_loops(K, P, sp.channels(z), *reads)

@@ -145,7 +145,7 @@ class SampledData(AbstractLoopModel):
         law = controller.law(plant.position_m)
         reads = (law.reads("x2"), law.reads("v_m"))
         parts = self.parts(controller, plant, servo)
-        params = (parts.law, SampledPlant.of(parts, plant, servo.period), servo.k_motor)
+        params = (parts.sampled, SampledPlant.of(parts, plant, servo.period), servo.k_motor)
         d = servo.delay_samples
 
         def L_fn(p, omega):
