@@ -29,6 +29,9 @@ def test_network_shape():
     assert net(0.3).shape == (7,) and net(0.3).dtype == jnp.float64
     out = jax.vmap(net)(jnp.asarray(POSITIONS))
     np.testing.assert_allclose(out[2], net(POSITIONS[2]), rtol=1e-15)
+    with pytest.raises(ValueError, match=r"in m, got \(100\.0, 700\.0\); table positions are "
+                                         r"in metres: 700 mm is 0\.7 m"):
+        fdjax.ATANetwork((100.0, 700.0))
     with pytest.raises(ValueError, match=r"`ATANetwork\(travel_m=\.\.\.\)` must be an increasing"):
         fdjax.ATANetwork((0.7, 0.1))
 

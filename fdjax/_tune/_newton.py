@@ -189,16 +189,16 @@ def tune_newton(
 
     Each step evaluates J, its gradient and its Hessian once per position (the Hessian's p
     columns are forward-mode derivatives of the reverse-mode gradient: 2p + 2 passes, p = 12
-    for :class:`fdjax.DoubleLoopParameterisation`, which on the reference drive cost about ten
-    evaluations of J in wall time).  On the
+    for :class:`fdjax.DoubleLoopParameterisation`, which on the reference drive cost about
+    twenty evaluations of J, or twelve of J with its gradient, in wall time).  On the
     12-parameter local problem it reaches lower objectives than first-order steps, and than
     the adaptive simplex given 1500 evaluations per position, in less wall time
     (``benchmarks/tuning.py``); it stops in the
     minimum its trust region leads to, and a simplex run for 8× longer ends lower at four of
     six positions (``benchmarks/tuning_converged.py``).  There, a larger initial ``radius``
-    (1 or 3) took as many exact steps or more, ``hessian_every`` = 20 or "the start only"
-    more steps than 8, and ``hessian="margins"`` 10× fewer simulations than the simplex but
-    no less time (``benchmarks/tuning_variants.py``).  For many parameters (a network) use
+    (1 or 3) took more exact steps or missed a position, ``hessian_every`` = 20 or "the start
+    only" more steps than 8, and ``hessian="margins"`` 10× fewer simulations than the simplex
+    but no less time (``benchmarks/tuning_variants.py``).  For many parameters (a network) use
     :func:`fdjax.train_schedule`.  The Hessian is exact for the tracking error and the margin
     penalties; the growth-rate barrier's second derivative holds the dominant eigenspace
     fixed (its gradient is exact), which the acceptance test ρ absorbs.

@@ -49,6 +49,10 @@ GAIN_OUTPUTS = ("log_kp", "log_kv", "log_ki")
 """The gain outputs of an :class:`ATANetwork` with ``gains=True``: δ_p, δ_v, δ_i."""
 
 
+# Ball screws are made up to about 10–15 m long; a network's travel beyond this was given in mm.
+_LONGEST_TRAVEL_M = 20.0
+
+
 class ATANetwork(eqx.Module):
     r"""The scheduling network: normalised table position in, two sigmoid hidden layers of
     ``width`` neurons, the seven normalised MCM parameters out, and with ``gains=True`` the
@@ -71,6 +75,11 @@ class ATANetwork(eqx.Module):
             raise ValueError(
                 f"`ATANetwork(travel_m=...)` must be an increasing (min, max) pair in m, got "
                 f"{travel_m!r}"
+            )
+        if hi > _LONGEST_TRAVEL_M:  # no ball screw is that long: a travel given in mm
+            raise ValueError(
+                f"`ATANetwork(travel_m=...)` must be a (min, max) pair in m, got {travel_m!r}; "
+                f"table positions are in metres: {hi:.6g} mm is {hi * 1e-3:.6g} m"
             )
         if not (isinstance(width, int) and 1 <= width <= 256):
             raise ValueError(f"`ATANetwork(width=...)` must be an int in [1, 256], got {width!r}")
