@@ -15,7 +15,7 @@ at 115 mm
 
 and the robust PID (every position) with the wide penalties.  Then every design is evaluated
 over the travel: RMS error, stability and the exact sampled margins (``fdjax.evaluate``).
-About 8 minutes on 2 cores.
+About 1.5 minutes on 2 cores.
 
 Usage:  python examples/margin_requirements.py [--steps 300] [--out margins.json]
 """

@@ -28,7 +28,7 @@ A schedule that used it would need its gains scheduled too; one started from it 
 with gains, ``fdjax.ATANetwork.with_gains``, constant at this design) and trained end to end
 over 13 positions did not bring the margins back in 60 L-BFGS steps.
 
-Usage:  python examples/screw_end_design.py [--out screw_end.json]   (about 3 minutes)
+Usage:  python examples/screw_end_design.py [--out screw_end.json]   (about half a minute)
 """
 
 from __future__ import annotations
