@@ -134,26 +134,20 @@ class Stability(eqx.Module):
 
 # ------------------------------------------------------------------------------------ checks
 def _check_controller(controller, fn: str) -> AbstractController:
-    if not isinstance(controller, AbstractController):
-        raise TypeError(
-            f"`{fn}(controller=...)` must be an fdjax controller (DoubleLoop, PIDLoop or a "
-            f"subclass of fdjax.AbstractController), got {type(controller).__name__}"
-        )
+    _checks.instance(controller, AbstractController, f"{fn}(controller=...)",
+                     "an fdjax controller (DoubleLoop, PIDLoop or a subclass of "
+                     "fdjax.AbstractController)")
     return controller
 
 
 def _check_servo(servo, fn: str) -> Servo:
-    if not isinstance(servo, Servo):
-        raise TypeError(f"`{fn}(servo=...)` must be an fdjax.Servo, got {type(servo).__name__}")
+    _checks.instance(servo, Servo, f"{fn}(servo=...)")
     return servo
 
 
 def _check_method(method, fn: str) -> AbstractLoopModel:
-    if not isinstance(method, AbstractLoopModel):
-        raise TypeError(
-            f"`{fn}(method=...)` must be fdjax.SampledData(), fdjax.Continuous() or "
-            f"fdjax.PadeODE(), got {type(method).__name__}"
-        )
+    _checks.instance(method, AbstractLoopModel, f"{fn}(method=...)",
+                     "fdjax.SampledData(), fdjax.Continuous() or fdjax.PadeODE()")
     return method
 
 

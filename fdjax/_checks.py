@@ -9,6 +9,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import equinox as eqx
@@ -69,6 +70,7 @@ def inside(value, lo: float, hi: float, where: str, what: str = "the travel"):
     """Table positions (m) inside ``what`` = [lo, hi], checked by :func:`check`.  A concrete
     value that misses the range but lies inside it once divided by 1000 was given in
     millimetres: the message says so, with the value in metres."""
+    numeric(value, where)  # a string or another object that is not numbers: a TypeError
     ok = lambda p: (p >= lo) & (p <= hi)  # noqa: E731  (NaN fails both comparisons)
     try:
         return check(value, ok, where, f"inside {what} [{lo:.6g}, {hi:.6g}] m")
@@ -80,6 +82,15 @@ def inside(value, lo: float, hi: float, where: str, what: str = "the travel"):
                 raise ValueError(f"{err}; table positions are in metres: {bad[0]:.6g} mm is "
                                  f"{bad[0] * 1e-3:.6g} m") from None
         raise
+
+
+def instance(value, cls, where: str, expected: str | None = None):
+    """``value`` when it is a ``cls``, else a ``TypeError`` naming ``where`` (the argument in
+    call syntax) and ``expected`` (default "an fdjax.<cls>"), which completes "must be ..."."""
+    if not isinstance(value, cls):
+        expected = expected or f"an fdjax.{cls.__name__}"
+        raise TypeError(f"`{where}` must be {expected}, got {type(value).__name__}")
+    return value
 
 
 def positive(value, where: str):
@@ -161,6 +172,19 @@ def finite_field(where: str, **kwargs):
     return _field(finite, where, **kwargs)
 
 
+def finite_scalar(value, where: str) -> jax.Array:
+    """A real scalar as float64, finite when it is concrete.  A traced value passes unguarded:
+    for the parts a controller builds inside ``jit`` from its own fields (the gains of its
+    blocks), which were checked where the controller was made."""
+    arr = real_scalar(value, where)
+    return finite(arr, where) if is_concrete(arr) else arr
+
+
+def finite_scalar_field(where: str, **kwargs):
+    """A Module field converted by :func:`finite_scalar`."""
+    return eqx.field(converter=lambda x: finite_scalar(x, where), **kwargs)
+
+
 # ------------------------------------------------------------------ casts and static facts
 def to_float(x) -> jax.Array:
     """``x`` as a float64 array (no checks): the one real cast of the package."""
@@ -172,9 +196,28 @@ def to_complex(x) -> jax.Array:
     return jnp.asarray(x).astype(jnp.complex128)
 
 
+def numeric(value, where: str) -> jax.Array:
+    """``value`` as a JAX array of numbers: a string, a list of strings or another object
+    that is not numbers is a ``TypeError`` naming ``where`` (not JAX's own message)."""
+    if isinstance(value, jax.Array):
+        return value
+    try:
+        arr = np.asarray(value)
+    except Exception:  # e.g. a list of traced values: JAX converts it, or says why not
+        try:
+            return jnp.asarray(value)
+        except Exception:
+            arr = np.asarray(None)
+    if arr.dtype.kind not in "biufc":
+        text = repr(value)
+        text = text if len(text) <= 60 else text[:57] + "..."
+        raise TypeError(f"`{where}` must be a number or an array of numbers, got {text}")
+    return jnp.asarray(arr)
+
+
 def real_array(value, where: str) -> jax.Array:
     """A real array of any shape as float64; a complex dtype is a ``ValueError`` (shape fact)."""
-    arr = jnp.asarray(value)
+    arr = numeric(value, where)
     if jnp.issubdtype(arr.dtype, jnp.complexfloating):
         raise ValueError(f"`{where}` must be real, got dtype {arr.dtype}")
     return arr.astype(jnp.float64)
@@ -186,7 +229,7 @@ def real_scalar(value, where: str) -> jax.Array:
     Jit-safe: a traced scalar stays traced, and a Python float becomes an array, so it is a
     traced argument of a jitted function (not a static one, which would compile per value).
     """
-    arr = jnp.asarray(value)
+    arr = numeric(value, where)
     if arr.ndim != 0 or jnp.issubdtype(arr.dtype, jnp.complexfloating):
         raise ValueError(f"`{where}` must be a real scalar, got {arr.dtype} of shape {arr.shape}")
     return arr.astype(jnp.float64)
@@ -218,6 +261,16 @@ def static_int(value, where: str, lo: int, hi: int | None = None) -> int:
         rng = f"between {lo} and {hi}" if hi is not None else f"at least {lo}"
         raise ValueError(f"`{where}` must be an integer {rng}, got {value!r}")
     return value
+
+
+def static_positive(value, where: str) -> float:
+    """A static positive number (a Python/NumPy real, not a bool, finite and > 0) as a Python
+    float: a setting that fixes what is compiled, such as a smooth maximum's sharpness."""
+    ok = isinstance(value, int | float | np.integer | np.floating) and not isinstance(
+        value, bool | np.bool_)
+    if not (ok and math.isfinite(float(value)) and float(value) > 0):
+        raise ValueError(f"`{where}` must be a finite positive number, got {value!r}")
+    return float(value)
 
 
 def static_bool(value, where: str) -> bool:

@@ -96,6 +96,48 @@ def test_start_is_one_design_for_every_position_or_one_per_position():
         _start("tune_local", par, rows, 2)
 
 
+def test_tuners_name_their_arguments_before_compiling():
+    """Bad settings are refused up front, naming the tuner: a controller outside the bounds or
+    of another kind as the start, a smooth maximum's sharpness that is not a finite positive
+    number (0 made the loss NaN, and every step was refused without a word)."""
+    drive = fdjax.reference_drive()
+    ref = fdjax.reference_controller(drive)
+    par = fdjax.DoubleLoopParameterisation(BOUNDS, ref)
+    obj = fdjax.tuning_objective()
+    pos = np.array([0.2, 0.4])
+    far = fdjax.DoubleLoop(mcm=fdjax.MCM(fdjax.PeakFilter(100.0, 5e3, 0.2, 0.1),
+                                         ref.mcm.notch))
+    for fn in (fdjax.tune_local, fdjax.tune_robust, fdjax.tune_shared_gains):
+        name = fn.__name__
+        with pytest.raises(ValueError, match=rf"`{name}\(start=\.\.\.\)` must lie inside the "
+                                             r"parameterisation's bounds: .*peak gain K"):
+            fn(par, obj, drive, pos, far, steps=1)
+        with pytest.raises(TypeError, match=rf"`{name}\(start=\.\.\.\)` must be a controller "
+                                            r"of the parameterisation"):
+            fn(par, obj, drive, pos, fdjax.PIDLoop(), steps=1)
+    for fn in (fdjax.tune_robust, fdjax.tune_shared_gains):
+        for bad in (0.0, -1.0, float("inf"), float("nan"), True, "2"):
+            with pytest.raises(ValueError, match=rf"`{fn.__name__}\(sharpness=\.\.\.\)` must be "
+                                                 r"a finite positive number"):
+                fn(par, obj, drive, pos, ref, steps=1, sharpness=bad)
+    sched = fdjax.ScheduledLoop(ref, fdjax.ATANetwork((0.1, 0.7), width=4), BOUNDS)
+    with pytest.raises(ValueError, match=r"`train_schedule\(sharpness=\.\.\.\)` must be a "
+                                         r"finite positive number, got inf"):
+        fdjax.train_schedule(sched, obj, drive, steps=1, sharpness=float("inf"))
+    narrow = fdjax.ScheduledLoop(ref, fdjax.ATANetwork((0.2, 0.6), width=4), BOUNDS)
+    with pytest.raises(ValueError, match=r"the network's travel \[0\.2, 0\.6\] m must cover the "
+                                         r"drive's \[0\.1, 0\.7\] m"):
+        fdjax.train_schedule(narrow, obj, drive, steps=1)
+    with pytest.raises(ValueError, match=r"`train_schedule\(positions_m=\.\.\.\)` must be inside "
+                                         r"the network's travel \[0\.2, 0\.6\] m, got 0\.65"):
+        fdjax.train_schedule(narrow, obj, drive, steps=1, positions_m=[0.3, 0.65])
+    with pytest.raises(ValueError, match=r"`smooth_max\(sharpness=\.\.\.\)` must be a finite "
+                                         r"positive number, got 0"):
+        fdjax.smooth_max(jnp.ones(3), 0.0)
+    np.testing.assert_allclose(fdjax.smooth_max(jnp.array([1.0, 2.0]), jnp.asarray(1e3)), 2.0,
+                               atol=1e-3)
+
+
 # ------------------------------------------------------------------------------ the simplex
 def test_simplex_is_scipys_adaptive_nelder_mead():
     """Evaluation for evaluation the same values as scipy's adaptive Nelder–Mead from the same

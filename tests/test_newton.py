@@ -59,6 +59,14 @@ def test_trust_region_step_solves_the_subproblem():
     # the hard case's step lies on the boundary and uses the least eigenvector
     lam, _, ratio, _ = _conditions(*cases[-1][:3], np.asarray(trust_region_step(*cases[-1])[0]))
     assert abs(ratio - 1) < 1e-12 and abs(lam - 2.0) < 1e-9, (ratio, lam)
+    # a radius that is not positive, or shapes that do not match, are named
+    for radius in (-1.0, 0.0, np.nan):
+        with pytest.raises(ValueError, match=r"`trust_region_step\(radius=\.\.\.\)` must be "
+                                             r"finite and positive"):
+            trust_region_step(np.ones(3), -np.eye(3), radius)
+    with pytest.raises(ValueError, match=r"must have shapes \(p,\) and \(p, p\), got \(3,\) "
+                                         r"and \(2, 2\)"):
+        trust_region_step(np.ones(3), np.eye(2), 1.0)
 
 
 def _problem():

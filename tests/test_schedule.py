@@ -101,6 +101,18 @@ def test_save_and_load_are_bit_exact(tmp_path):
             fn(tmp_path / "s.json")
     with pytest.raises(FileNotFoundError, match=r"`save_schedule\(path=\.\.\.\)`: no folder"):
         fdjax.save_schedule(tmp_path / "no" / "s.eqx", sched)
+    # a folder for the file: the one fdjax tune writes is named
+    with pytest.raises(IsADirectoryError, match=r"must be a schedule's file .*got the folder .*"
+                                                r"did you mean .*schedule\.eqx'\?"):
+        fdjax.load_schedule(tmp_path)
+    # metadata JSON cannot hold is refused before anything is written: the schedule saved
+    # before is still there and loads
+    with pytest.raises(ValueError, match=r"`save_schedule\(metadata=\.\.\.\)` must hold only "
+                                         r"what JSON can .*ArrayImpl"):
+        fdjax.save_schedule(path, sched, metadata={"lead": jnp.asarray(0.01)})
+    assert bool(eqx.tree_equal(fdjax.load_schedule(path), back))
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["lone.eqx", "schedule.eqx",
+                                                          "schedule.json"]
 
 
 def test_filter_table_is_the_schedule_in_drive_units():

@@ -395,7 +395,7 @@ def test_bad_input():
         count_modes(drive, -1.0)
     with pytest.raises(ValueError, match=r"`TwinOptions\(band_hz=\.\.\.\)` must be finite and"):
         TwinOptions(band_hz=0.0)
-    with pytest.raises(TypeError, match=r"`state_space\(twin=\.\.\.\)` must be a fdjax\.Twin"):
+    with pytest.raises(TypeError, match=r"`state_space\(twin=\.\.\.\)` must be an fdjax\.Twin"):
         state_space(drive, 0.3, twin=12)
     lossy = eqx.tree_at(lambda d: d.screw.loss_factor, drive, 0.01)
     with pytest.raises(ValueError, match=r"`Screw\(loss_factor=\.\.\.\)` must be 0"):

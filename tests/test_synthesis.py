@@ -1,6 +1,7 @@
 """Gradient synthesis: the growth-rate barrier's gradient, the PID parameterisation, the
 interpolated and scheduled loops, the certification, and saving and loading the designs."""
 
+import dataclasses
 import math
 
 import equinox as eqx
@@ -108,6 +109,11 @@ def test_designs_round_trip_bit_for_bit(tmp_path):
         "interp": fdjax.InterpolatedLoop(fdjax.DoubleLoop(150.0, 3000.0, 40.0), POSITIONS,
                                          _designs(), BOUNDS),
         "ata": fdjax.ScheduledLoop(fdjax.DoubleLoop(111.0, 2222.0, 33.0), net, BOUNDS),
+        # any MCM layout: none, two peaks alone
+        "plain": fdjax.DoubleLoop(100.0, 300.0, 20.0),
+        "two_peaks": fdjax.DoubleLoop(mcm=fdjax.MCM(fdjax.PeakFilter(
+            np.array([0.5, 2.0]), np.array([2e3, 5e3]), np.array([0.1, 0.3]),
+            np.array([0.2, -0.4])))),
     }
     fdjax.save_designs(tmp_path, controllers, metadata={"drive": "test"})
     back, meta = fdjax.load_designs(tmp_path)
@@ -119,6 +125,9 @@ def test_designs_round_trip_bit_for_bit(tmp_path):
             np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
     with pytest.raises(FileNotFoundError, match=r"`load_designs\(folder=\.\.\.\)`: no file"):
         fdjax.load_designs(tmp_path / "nothing")
+    with pytest.raises(ValueError, match=r"'bare' must have an fdjax\.MCM .*got a PeakFilter"):
+        fdjax.save_designs(tmp_path / "bad", {"bare": fdjax.DoubleLoop(mcm=mcm.peak)})
+    assert not (tmp_path / "bad").exists()  # refused before the folder is made
     # without a folder: the designs shipped with fdjax, those the command line evaluates
     from fdjax import cli
 
@@ -167,6 +176,15 @@ def test_certify_is_loop_margins_and_stability_at_each_position():
     with pytest.raises(ValueError, match=r"`certify\(positions_m=\.\.\.\)` must be inside the "
                                          r"travel"):
         fdjax.certify(ref, drive, [115.0])
+    with pytest.raises(TypeError, match=r"`certify\(positions_m=\.\.\.\)` must be a number or an "
+                                        r"array of numbers, got \['a'\]"):
+        fdjax.certify(ref, drive, ["a"])
+    # a requirement that no margin can meet (NaN failed every position without a word)
+    for kw, msg in (({"gain_margin_db": np.nan}, r"gain_margin_db=\.\.\.\)` must be finite"),
+                    ({"modulus_margin": 2.0}, r"modulus_margin=\.\.\.\)` must be in \(0, 1\]"),
+                    ({"phase_margin_deg": 200.0}, r"phase_margin_deg=\.\.\.\)` must be in")):
+        with pytest.raises(ValueError, match=r"`certify\(" + msg):
+            fdjax.certify(ref, drive, y, **kw)
 
 
 # ------------------------------------------------------------------ export
@@ -191,6 +209,15 @@ def test_python_control_export_is_the_law_the_loop_runs():
     want_c = np.asarray(fdjax.reference_pid().law(None).transfer(jnp.asarray(s)))
     # ss → tf (polynomials) loses ~1e-7 near the integrator's pole at 3 Hz (measured 1.9e-7)
     np.testing.assert_allclose(np.stack([cont(sk)[0] for sk in s]), want_c, rtol=1e-6)
+    # a position in mm, NaN or a list, and an unknown discretisation are named
+    ref = fdjax.reference_controller()
+    for kw, msg in (({"position_m": 115.0}, r"position_m=\.\.\.\)` must be a finite table position "
+                                            r"in metres .*115 mm is 0\.115 m"),
+                    ({"position_m": np.nan}, r"position_m=\.\.\.\)` must be a finite"),
+                    ({"position_m": [0.2, 0.3]}, r"position_m=\.\.\.\)` must be a real scalar"),
+                    ({"filter_method": "bogus"}, r"filter_method=\.\.\.\)` must be one of")):
+        with pytest.raises(ValueError, match=r"`to_python_control\(" + msg):
+            fdjax.to_python_control(ref, **kw)
 
 
 def test_synthesise_names_its_arguments():
@@ -201,6 +228,11 @@ def test_synthesise_names_its_arguments():
         fdjax.synthesise("drive.json", progress=False)
     with pytest.raises(TypeError, match=r"`synthesise\(servo=\.\.\.\)` must be an fdjax"):
         fdjax.synthesise(servo=8000, progress=False)
+    # the paper's positions must lie in the drive's travel (checked before any stage runs)
+    short = dataclasses.replace(fdjax.reference_drive(), travel_m=(0.2, 0.6))
+    with pytest.raises(ValueError, match=r"`synthesise\(drive=\.\.\.\)` must have a travel that "
+                                         r"holds the paper's design positions 0\.1–0\.7 m"):
+        fdjax.synthesise(short, progress=False)
     # the counts of every stage before the first one runs (the robust MCM's is the last)
     for kwargs, match in (({"robust_steps": -1}, r"robust_steps=\.\.\.\)` must be an int ≥ 1, "
                                                  r"got -1"),

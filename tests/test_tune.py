@@ -60,6 +60,25 @@ def test_round_trip_and_reference():
         np.testing.assert_allclose(getattr(again, k), getattr(loop, k), rtol=1e-14)
 
 
+
+def test_saturated_theta_reads_back_and_bad_filters_raise_under_jit():
+    # σ(θ) rounds to 1 in float64 beyond θ ≈ 36.7, so to_mcm puts the filter on a bound: it
+    # must read back as a finite θ that gives the same filter (not an error, not inf)
+    for k, big in ((0, 40.0), (3, 20.0), (6, 40.0), (6, -40.0), (1, -40.0)):
+        theta = jnp.zeros(7).at[k].set(big)
+        mcm = BOUNDS.to_mcm(theta)
+        back = BOUNDS.from_mcm(mcm)
+        assert np.all(np.isfinite(np.asarray(back))) and abs(float(back[k])) <= 36.1
+        np.testing.assert_allclose(list(_physical(BOUNDS.to_mcm(back)).values()),
+                                   list(_physical(mcm).values()), rtol=1e-14)
+    # a filter outside the bounds raises eagerly and under jit, never a silent NaN
+    ref = fdjax.reference_mcm()
+    bad = fdjax.MCM(fdjax.PeakFilter(100.0, 2 * math.pi * 800, 0.2, 0.1), ref.notch)
+    with pytest.raises(ValueError, match=r"peak gain K must lie inside \[0\.001, 10\], got 100"):
+        BOUNDS.from_mcm(bad)
+    with pytest.raises(Exception, match=r"the peak gain K must lie inside \[0\.001, 10\]"):
+        jax.block_until_ready(eqx.filter_jit(BOUNDS.from_mcm)(bad))
+
 @pytest.mark.parametrize("scale", [1.0, 30.0, 1e3])
 def test_every_theta_is_admissible(scale):
     rng = np.random.default_rng(1)
@@ -127,7 +146,7 @@ def test_errors_name_the_argument():
     with pytest.raises(ValueError, match=r"`MCMBounds\.from_mcm\(mcm=\.\.\.\)`: the notch depth"):
         BOUNDS.from_mcm(fdjax.MCM(fdjax.PeakFilter(0.5, 800.0, 0.3, -1.0),
                                   fdjax.NotchFilter(9000.0, 0.6, 0.5)))
-    with pytest.raises(ValueError, match=r"the peak frequency ω \(rad/s\) must lie strictly"):
+    with pytest.raises(ValueError, match=r"the peak frequency ω \(rad/s\) must lie inside"):
         BOUNDS.from_mcm(fdjax.MCM(fdjax.PeakFilter(0.5, 3e4, 0.3, -1.0),
                                   fdjax.NotchFilter(9000.0, 0.05, 0.5)))
     with pytest.raises(ValueError, match=r"must have shape \(7,\), got \(6,\)"):
@@ -193,6 +212,22 @@ def test_gain_margin_penalty_counts_both_directions_as_the_exact_margin_does():
     assert float(margin_penalty(L, modulus_margin=0.01)) < 0.01
     assert float(np.min(gain_distance(5.0 * L, 6.0))) < 1e-3
     assert float(margin_penalty(5.0 * L, modulus_margin=0.01)) > np.log(2) ** 2
+
+
+def test_penalty_settings_are_checked():
+    """A zero width made the penalty vanish without a word, a zero β made it infinite."""
+    L = jnp.array([0.5 + 0.1j, -0.3 + 0.2j, -0.9 + 0.05j])
+    for kw, name in (({"beta": 0.0}, "beta"), ({"width": 0.0}, "width"),
+                     ({"width": np.inf}, "width"), ({"beta": -3.0}, "beta")):
+        with pytest.raises(ValueError, match=rf"`margin_penalty\({name}=\.\.\.\)` must be finite "
+                                             r"and positive"):
+            fdjax.margin_penalty(L, **kw)
+    with pytest.raises(ValueError, match=r"`soft_min\(beta=\.\.\.\)` must be finite and positive"):
+        fdjax._tune.soft_min(jnp.ones(3), 0.0)
+    # under jit the settings are traced (an objective's leaves, checked where it is built)
+    traced = jax.jit(lambda b, w: fdjax.margin_penalty(L, beta=b, width=w))(200.0, 0.05)
+    np.testing.assert_allclose(traced, fdjax.margin_penalty(L, beta=200.0, width=0.05),
+                               rtol=1e-14)
 
 
 def test_penalty_grows_with_gain_and_stays_finite():
@@ -280,12 +315,33 @@ def test_objective_names_itself_in_errors():
     with pytest.raises(ValueError, match=r"`Objective\(output=\.\.\.\)` must be 'scale' or"):
         fdjax.Objective(ref, np.geomspace(5.0, 3900.0, 64), output="x3")
     for name in ("margin_width", "margin_sharpness"):
-        with pytest.raises(ValueError, match=rf"`Objective\({name}=\.\.\.\)` must be positive, "
-                                             r"got 0.0"):
+        with pytest.raises(ValueError, match=rf"`Objective\({name}=\.\.\.\)` must be finite and "
+                                             r"positive, got 0.0"):
             fdjax.Objective(ref, np.geomspace(5.0, 3900.0, 64), **{name: 0.0})
-    with pytest.raises(ValueError, match=r"`Objective\(margin_weight=\.\.\.\)` must be "
-                                         r"non-negative, got -1.0"):
-        fdjax.Objective(ref, np.geomspace(5.0, 3900.0, 64), margin_weight=-1.0)
+    grid = np.geomspace(5.0, 3900.0, 64)
+    for kw, msg in (
+        ({"margin_weight": -1.0}, r"margin_weight=\.\.\.\)` must be finite and non-negative, "
+                                  r"got -1"),
+        ({"margin_weight": np.inf}, r"margin_weight=\.\.\.\)` must be finite and non-negative, "
+                                    r"got inf"),
+        # static settings fix what is compiled: NaN growth rates made J NaN and "stable"
+        ({"max_growth_rate": np.nan}, r"max_growth_rate=\.\.\.\)` must be finite \(1/s\), "
+                                      r"got nan"),
+        ({"gain_margin_db": np.nan}, r"gain_margin_db=\.\.\.\)` must be finite and non-negative"),
+        ({"phase_margin_deg": -5.0}, r"phase_margin_deg=\.\.\.\)` must be in \[0, 180\) degrees"),
+        ({"modulus_margin": 1.5}, r"modulus_margin=\.\.\.\)` must be in \(0, 1\]"),
+        ({"error_bound_m": -1.0}, r"error_bound_m=\.\.\.\)` must be finite and positive \(m\)"),
+        ({"duration": 0.0}, r"duration=\.\.\.\)` must be finite and positive \(s\)"),
+    ):
+        with pytest.raises(ValueError, match=r"`Objective\(" + msg):
+            fdjax.Objective(ref, grid, **kw)
+    # one position per call: the objective is vmapped over positions, not given an array
+    with pytest.raises(ValueError, match=r"`Objective\.margin_term\(position_m=\.\.\.\)` must be "
+                                         r"one table position \(a scalar"):
+        obj.margin_term(fdjax.DoubleLoop(), fdjax.reference_drive(), np.array([0.3]))
+    # a grid given as a list is the float64 array a grid given as an array is
+    listed = fdjax.Objective(ref, list(grid.astype(np.float32)))
+    assert isinstance(listed.freq_hz, jax.Array) and listed.freq_hz.dtype == jnp.float64
     with pytest.raises(ValueError, match=r"`Objective\(error_scale_m=\.\.\.\)` must be a "
                                          r"scalar, got shape \(2,\)"):
         fdjax.Objective(ref, np.geomspace(5.0, 3900.0, 64), error_scale_m=[1e-6, 1e-5])

@@ -102,8 +102,8 @@ class AbstractBlock(eqx.Module):
 class PI(AbstractBlock):
     r"""C(s) = k_v (1 + k_i/s): a PI speed controller (k_i the corner, rad/s)."""
 
-    kv: Float[Array, ""]
-    ki: Float[Array, ""]
+    kv: Float[Array, ""] = _checks.finite_scalar_field("PI(kv=...)")
+    ki: Float[Array, ""] = _checks.finite_scalar_field("PI(ki=...)")
 
     def continuous(self) -> LTI:
         return _siso(jnp.zeros((1, 1)), jnp.ones((1, 1)), self.kv * self.ki, self.kv)
@@ -119,10 +119,10 @@ class PID(AbstractBlock):
     Realised with the integrator z and the derivative filter's state x_d
     (ẋ_d = −ω_d x_d + e): k_d s/(1 + s/ω_d) = k_d ω_d (1 − ω_d/(s + ω_d))."""
 
-    kp: Float[Array, ""]
-    ki: Float[Array, ""]
-    kd: Float[Array, ""]
-    wd: Float[Array, ""]
+    kp: Float[Array, ""] = _checks.finite_scalar_field("PID(kp=...)")
+    ki: Float[Array, ""] = _checks.finite_scalar_field("PID(ki=...)")
+    kd: Float[Array, ""] = _checks.finite_scalar_field("PID(kd=...)")
+    wd: Float[Array, ""] = _checks.finite_scalar_field("PID(wd=...)")
 
     def continuous(self) -> LTI:
         kd, wd = self.kd, self.wd

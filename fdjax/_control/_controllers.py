@@ -69,7 +69,8 @@ class Path(eqx.Module):
                 raise ValueError(
                     f"`Path(gains=...)` keys must be among {LAW_SIGNALS}, got {name!r}"
                 )
-        self.gains = {k: jnp.asarray(v, jnp.float64) for k, v in gains.items()}
+        self.gains = {k: _checks.finite_scalar(v, f"Path(gains[{k!r}]=...)")
+                      for k, v in gains.items()}
         self.blocks = tuple(as_block(b, "Path(blocks=...)") for b in blocks)
 
     def row(self) -> Float[Array, " 5"]:
@@ -251,11 +252,8 @@ class DoubleLoop(AbstractController):
     ):
         if mcm is None:
             mcm = MCM()
-        if not isinstance(mcm, AbstractFilter):
-            raise TypeError(
-                f"`DoubleLoop(mcm=...)` must be an fdjax.MCM (or another fdjax filter), "
-                f"got {type(mcm).__name__}"
-            )
+        _checks.instance(mcm, AbstractFilter, "DoubleLoop(mcm=...)",
+                         "an fdjax.MCM (or another fdjax filter)")
         self.log_kp = _log_positive(kp, "DoubleLoop(kp=...)")
         self.log_kv = _log_positive(kv, "DoubleLoop(kv=...)")
         self.log_ki = _log_positive(ki, "DoubleLoop(ki=...)")

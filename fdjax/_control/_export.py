@@ -9,13 +9,20 @@ the same realisation the closed loops, margins and simulations of fdjax use.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
+from .._checks import concrete_float, instance, real_scalar
+from ._blocks import FILTER_METHODS
 from ._controllers import LAW_SIGNALS, AbstractController
 from ._interconnect import realise_law
 from ._servo import Servo
 
 __all__ = ["to_python_control"]
+
+_MAX_POSITION_M = 20.0
+"""Beyond this a table position (m) was given in millimetres (no machine axis is 20 m long)."""
 
 
 def to_python_control(controller: AbstractController, position_m=None, *,
@@ -26,16 +33,26 @@ def to_python_control(controller: AbstractController, position_m=None, *,
     sampled at the servo period (module docstring) or continuous.  Inputs named after
     :data:`fdjax.LAW_SIGNALS`, output ``u`` (A).  Needs the ``control`` package."""
     fn = "to_python_control"
-    if not isinstance(controller, AbstractController):
-        raise TypeError(f"`{fn}(controller=...)` must be an fdjax controller, got "
-                        f"{type(controller).__name__}")
+    instance(controller, AbstractController, f"{fn}(controller=...)", "an fdjax controller")
     if form not in ("ss", "tf"):
         raise ValueError(f"`{fn}(form=...)` must be 'ss' or 'tf', got {form!r}")
+    if filter_method not in FILTER_METHODS:
+        raise ValueError(f"`{fn}(filter_method=...)` must be one of {FILTER_METHODS}, got "
+                         f"{filter_method!r}")
+    instance(servo, Servo, f"{fn}(servo=...)")
+    if position_m is not None:
+        where = f"{fn}(position_m=...)"
+        position_m = float(concrete_float(real_scalar(position_m, where), where))
+        if not (math.isfinite(position_m) and abs(position_m) <= _MAX_POSITION_M):
+            mm = (f"; table positions are in metres: {position_m:.6g} mm is "
+                  f"{position_m * 1e-3:.6g} m" if math.isfinite(position_m) else "")
+            raise ValueError(f"`{where}` must be a finite table position in metres (at most "
+                             f"{_MAX_POSITION_M:g} m), got {position_m:.6g}{mm}")
     try:
         import control
     except ImportError as exc:  # pragma: no cover - depends on the environment
         raise ImportError(f"`{fn}` needs python-control: pip install control") from exc
-    law = controller.law(None if position_m is None else float(position_m))
+    law = controller.law(position_m)
     period = float(servo.period) if discrete else None
     lti = realise_law(law, period=period, filter_method=filter_method)
     A, B, C, D = (np.array(x, np.float64) for x in (lti.A, lti.B, lti.C, lti.D))

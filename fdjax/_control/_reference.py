@@ -14,6 +14,7 @@ import math
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from .._checks import instance
 from .._drive._model import BallScrewDrive
 from .._drive._reference import reference_drive
 from .._filters import MCM, NotchFilter, PeakFilter
@@ -120,16 +121,9 @@ def rigid_feedforward(
     Returns:
         (k_ffv in A·s/m, k_ffa in A·s²/m).
     """
-    if not isinstance(drive, BallScrewDrive):
-        raise TypeError(
-            f"`rigid_feedforward(drive=...)` must be an fdjax.BallScrewDrive, got "
-            f"{type(drive).__name__}"
-        )
+    instance(drive, BallScrewDrive, "rigid_feedforward(drive=...)")
     if servo is None:
         servo = reference_servo()
-    if not isinstance(servo, Servo):
-        raise TypeError(
-            f"`rigid_feedforward(servo=...)` must be an fdjax.Servo, got {type(servo).__name__}"
-        )
+    instance(servo, Servo, "rigid_feedforward(servo=...)")
     scale = servo.k_motor * jnp.asarray(drive.screw.ratio)
     return drive.reflected_damping() / scale, drive.reflected_inertia() / scale

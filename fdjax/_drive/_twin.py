@@ -179,8 +179,7 @@ class TwinOptions(eqx.Module):
 def _twin_options(twin, fn: str) -> TwinOptions:
     if twin is None:
         return TwinOptions()
-    if not isinstance(twin, TwinOptions):
-        raise TypeError(f"`{fn}(twin=...)` must be a fdjax.TwinOptions, got {type(twin).__name__}")
+    _checks.instance(twin, TwinOptions, f"{fn}(twin=...)")
     return twin
 
 

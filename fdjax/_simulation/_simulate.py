@@ -176,13 +176,10 @@ def simulate(
         A :class:`Simulation`; ``result`` says how it ended and ``message`` says it in words.
     """
     fn = "simulate"
-    if not isinstance(controller, AbstractController):
-        raise TypeError(
-            f"`{fn}(controller=...)` must be an fdjax controller (DoubleLoop, PIDLoop or a "
-            f"subclass of fdjax.AbstractController), got {type(controller).__name__}"
-        )
-    if not isinstance(servo, Servo):
-        raise TypeError(f"`{fn}(servo=...)` must be an fdjax.Servo, got {type(servo).__name__}")
+    _checks.instance(controller, AbstractController, f"{fn}(controller=...)",
+                     "an fdjax controller (DoubleLoop, PIDLoop or a subclass of "
+                     "fdjax.AbstractController)")
+    _checks.instance(servo, Servo, f"{fn}(servo=...)")
     if not callable(getattr(method, "run", None)):
         raise TypeError(
             f"`{fn}(method=...)` must be fdjax.SampledData() or fdjax.PadeODE(), "

@@ -22,6 +22,7 @@ import numpy as np
 from jaxtyping import ArrayLike, Float
 
 from .._analysis import check_stability, loop_margins
+from .._checks import instance, real_array
 from .._control._controllers import AbstractController
 from .._control._servo import Servo
 from .._drive._model import BallScrewDrive
@@ -199,18 +200,24 @@ def certify(
         gain_margin_db, phase_margin_deg, modulus_margin: the requirements.
     """
     fn = "certify"
-    if not isinstance(controller, AbstractController):
-        raise TypeError(f"`{fn}(controller=...)` must be an fdjax controller, got "
-                        f"{type(controller).__name__}")
-    if not isinstance(drive, BallScrewDrive):
-        raise TypeError(f"`{fn}(drive=...)` must be an fdjax.BallScrewDrive, got "
-                        f"{type(drive).__name__}")
-    if not isinstance(servo, Servo):
-        raise TypeError(f"`{fn}(servo=...)` must be an fdjax.Servo, got {type(servo).__name__}")
+    instance(controller, AbstractController, f"{fn}(controller=...)", "an fdjax controller")
+    instance(drive, BallScrewDrive, f"{fn}(drive=...)")
+    instance(servo, Servo, f"{fn}(servo=...)")
+    for name, value, ok, expected in (
+            ("gain_margin_db", gain_margin_db, lambda v: v >= 0, "finite and non-negative (dB)"),
+            ("phase_margin_deg", phase_margin_deg, lambda v: 0 <= v < 180,
+             "in [0, 180) degrees"),
+            ("modulus_margin", modulus_margin, lambda v: 0 < v <= 1, "in (0, 1]")):
+        try:
+            v = float(value)
+        except (TypeError, ValueError):
+            v = float("nan")
+        if not (np.isfinite(v) and ok(v)):
+            raise ValueError(f"`{fn}({name}=...)` must be {expected}, got {value!r}")
     lo, hi = drive.travel_m
     if positions_m is None:
         positions_m = np.linspace(lo, hi, int(round((hi - lo) / 1e-3)) + 1)
-    y = np.atleast_1d(np.asarray(positions_m, float))
+    y = np.atleast_1d(np.asarray(real_array(positions_m, f"{fn}(positions_m=...)")))
     if y.ndim != 1:
         raise ValueError(f"`{fn}(positions_m=...)` must be 1-D, got shape {y.shape}")
     y = np.asarray(drive._check_travel(y, fn, "positions_m"))

@@ -17,7 +17,14 @@ import jax.numpy as jnp
 from .._control._controllers import AbstractController, DoubleLoop, PIDLoop
 from .._filters import MCM, NotchFilter, PeakFilter
 from ._parameterisation import MCM_PARAMETERS
-from ._schedule import ATANetwork, InterpolatedLoop, ScheduledLoop, bounds_from_json, bounds_json
+from ._schedule import (
+    ATANetwork,
+    InterpolatedLoop,
+    ScheduledLoop,
+    bounds_from_json,
+    bounds_json,
+    write_pair,
+)
 
 __all__ = ["save_designs", "load_designs"]
 
@@ -32,11 +39,12 @@ def _describe(name: str, c: AbstractController) -> dict:
         return {"kind": "InterpolatedLoop", "n_points": int(c.positions_m.shape[0]),
                 "bounds": bounds_json(c.bounds)}
     if isinstance(c, DoubleLoop):
-        if c.mcm.peak is None or c.mcm.notch is None or c.mcm.peak.K.shape != (1,) or \
-                c.mcm.notch.omega.shape != (1,):
-            raise ValueError(f"`save_designs(controllers=...)`: {name!r} must have an MCM of one "
-                             "peak and one notch filter")
-        return {"kind": "DoubleLoop"}
+        if not isinstance(c.mcm, MCM):
+            raise ValueError(f"`save_designs(controllers=...)`: {name!r} must have an fdjax.MCM "
+                             f"(of peak and notch filters), got a {type(c.mcm).__name__}")
+        return {"kind": "DoubleLoop",
+                "peaks": 0 if c.mcm.peak is None else int(c.mcm.peak.K.shape[0]),
+                "notches": 0 if c.mcm.notch is None else int(c.mcm.notch.omega.shape[0])}
     if isinstance(c, PIDLoop):
         return {"kind": "PIDLoop"}
     raise TypeError(f"`save_designs(controllers=...)`: {name!r} is a {type(c).__name__}; "
@@ -44,12 +52,14 @@ def _describe(name: str, c: AbstractController) -> dict:
 
 
 def _skeleton(d: dict) -> AbstractController:
-    mcm = MCM(PeakFilter(0.1, 1000.0, 0.1, 0.0), NotchFilter(5000.0, 0.01, 0.1))
     kind = d["kind"]
     if kind == "PIDLoop":
         return PIDLoop()
-    if kind == "DoubleLoop":
-        return DoubleLoop(mcm=mcm)
+    if kind == "DoubleLoop":  # files written before the counts were recorded: one and one
+        n_p, n_n = d.get("peaks", 1), d.get("notches", 1)
+        peak = PeakFilter(*(jnp.full(n_p, v) for v in (0.1, 1000.0, 0.1, 0.0))) if n_p else None
+        notch = NotchFilter(*(jnp.full(n_n, v) for v in (5000.0, 0.01, 0.1))) if n_n else None
+        return DoubleLoop(mcm=MCM(peak, notch))
     if kind == "InterpolatedLoop":
         n = d["n_points"]
         return InterpolatedLoop(DoubleLoop(), jnp.arange(1.0, n + 1.0),
@@ -68,14 +78,13 @@ def save_designs(folder: str | os.PathLike, controllers: dict[str, AbstractContr
     if not isinstance(controllers, dict) or not controllers:
         raise TypeError("`save_designs(controllers=...)` must be a non-empty dict of name → "
                         "controller")
-    folder = os.fspath(folder)
-    os.makedirs(folder, exist_ok=True)
     meta = {"format": _FORMAT, "names": list(controllers),
             "controllers": {k: _describe(k, c) for k, c in controllers.items()},
             "metadata": dict(metadata or {})}
-    eqx.tree_serialise_leaves(os.path.join(folder, "controllers.eqx"), controllers)
-    with open(os.path.join(folder, "controllers.json"), "w") as f:
-        json.dump(meta, f, indent=2, ensure_ascii=False)
+    folder = os.fspath(folder)
+    os.makedirs(folder, exist_ok=True)
+    write_pair(os.path.join(folder, "controllers.eqx"), controllers,
+               os.path.join(folder, "controllers.json"), meta, "save_designs")
 
 
 SHIPPED = os.path.join(os.path.dirname(os.path.dirname(__file__)), "data", "reference_designs")

@@ -128,21 +128,14 @@ def train_schedule(
         step, ``aux``: the batch's worst J).
     """
     fn = "train_schedule"
-    if not isinstance(schedule, ScheduledLoop):
-        raise TypeError(f"`{fn}(schedule=...)` must be an fdjax.ScheduledLoop, got "
-                        f"{type(schedule).__name__}")
-    if not isinstance(objective, Objective):
-        raise TypeError(f"`{fn}(objective=...)` must be an fdjax.Objective, got "
-                        f"{type(objective).__name__}")
-    if not isinstance(drive, BallScrewDrive):
-        raise TypeError(f"`{fn}(drive=...)` must be an fdjax.BallScrewDrive, got "
-                        f"{type(drive).__name__}")
+    _checks.instance(schedule, ScheduledLoop, f"{fn}(schedule=...)")
+    _checks.instance(objective, Objective, f"{fn}(objective=...)")
+    _checks.instance(drive, BallScrewDrive, f"{fn}(drive=...)")
     objective = objective.resolved(drive, fn)
     for name, value, least in (("steps", steps, 1), ("batch", batch, 2), ("chunk", chunk, 1)):
         if not (isinstance(value, int) and value >= least):
             raise ValueError(f"`{fn}({name}=...)` must be an int ≥ {least}, got {value!r}")
-    if not (isinstance(sharpness, (int, float)) and sharpness > 0):
-        raise ValueError(f"`{fn}(sharpness=...)` must be a positive number, got {sharpness!r}")
+    sharpness = _checks.static_positive(sharpness, f"{fn}(sharpness=...)")
     spec = jax.tree_util.tree_map(lambda _: False, schedule)
     spec = eqx.tree_at(lambda s: s.network, spec,
                        jax.tree_util.tree_map(eqx.is_inexact_array, schedule.network))
@@ -151,16 +144,22 @@ def train_schedule(
     if train_feedforward:
         ff = lambda s: (s.loop.k_ffv, s.loop.k_ffa)  # noqa: E731
         spec = eqx.tree_at(ff, spec, (True,) * 2)
+    lo, hi = drive.travel_m
+    n_lo, n_hi = schedule.network.travel_m
     if positions_m is not None:
-        fixed = np.asarray(positions_m, np.float64)
-        lo, hi = drive.travel_m
+        where = f"{fn}(positions_m=...)"
+        fixed = np.asarray(_checks.real_array(positions_m, where))
         if fixed.ndim != 1 or fixed.size == 0:
-            raise ValueError(f"`{fn}(positions_m=...)` must be a non-empty 1-D array, got "
-                             f"shape {fixed.shape}")
-        _checks.inside(fixed, lo, hi, f"{fn}(positions_m=...)")
+            raise ValueError(f"`{where}` must be a non-empty 1-D array, got shape {fixed.shape}")
+        _checks.inside(fixed, lo, hi, where)
+        _checks.inside(fixed, n_lo, n_hi, where, "the network's travel")
         fixed = jnp.asarray(fixed)
     else:
         fixed = None
+        if not (n_lo <= lo and hi <= n_hi):  # the batches are drawn over the drive's travel
+            raise ValueError(f"`{fn}(schedule=...)`: the network's travel [{n_lo:.6g}, "
+                             f"{n_hi:.6g}] m must cover the drive's [{lo:.6g}, {hi:.6g}] m, "
+                             "over which the batches are drawn (or give positions_m)")
     params, static = eqx.partition(schedule, spec)
     reference = jnp.stack(_GAINS(schedule)) if train_gains else None
     loss = _EndToEndLoss(static, objective, drive, fixed, reference,

@@ -38,7 +38,9 @@ class LocalTuning(eqx.Module):
         best_theta: per position the parameters of the lowest objective seen, (n, p).
         history: the objective J at every step and position, (steps, n).
         terms: the objective's terms at ``best_theta`` (batched over the positions).
-        seconds: wall time of the steps, compilation apart (s).
+        seconds: wall time of the steps without the first call, which compiles (s): the
+            steps after the first chunk (0.0 for a run of one chunk); :func:`fdjax.tune_newton`
+            the steps after the first, scaled to all steps at their rate.
         evaluations: evaluations of the objective with its gradient per step and position,
             (steps, n): 1 per step for Adam, the line search's trials for L-BFGS (and the
             start's evaluation on the first step); None where not counted.
@@ -214,17 +216,11 @@ def _run(par, objective, drive, y, theta, state, best, best_j, opt, steps):
 
 
 def _check_common(fn, parameterisation, objective, drive, positions_m, steps, chunk):
-    if not isinstance(parameterisation, AbstractParameterisation):
-        raise TypeError(f"`{fn}(parameterisation=...)` must be an fdjax parameterisation "
-                        f"(DoubleLoopParameterisation, PIDParameterisation), got "
-                        f"{type(parameterisation).__name__}")
-    if not isinstance(objective, Objective):
-        raise TypeError(f"`{fn}(objective=...)` must be an fdjax.Objective, got "
-                        f"{type(objective).__name__}")
-    if not isinstance(drive, BallScrewDrive):
-        raise TypeError(f"`{fn}(drive=...)` must be an fdjax.BallScrewDrive, got "
-                        f"{type(drive).__name__}")
-    pos = np.asarray(positions_m, np.float64)
+    _checks.instance(parameterisation, AbstractParameterisation, f"{fn}(parameterisation=...)",
+                     "an fdjax parameterisation (DoubleLoopParameterisation, PIDParameterisation)")
+    _checks.instance(objective, Objective, f"{fn}(objective=...)")
+    _checks.instance(drive, BallScrewDrive, f"{fn}(drive=...)")
+    pos = np.asarray(_checks.real_array(positions_m, f"{fn}(positions_m=...)"))
     if pos.ndim != 1 or pos.size == 0:
         raise ValueError(f"`{fn}(positions_m=...)` must be a non-empty 1-D array, got shape "
                          f"{pos.shape}")
@@ -236,28 +232,39 @@ def _check_common(fn, parameterisation, objective, drive, positions_m, steps, ch
     return pos, objective.resolved(drive, fn)
 
 
-def _start(fn, parameterisation, start, n):
+def _start(fn, parameterisation, start, n=None):
+    """The start's θ, (n, p) (``n=None``: one θ, (p,)), from a controller of the
+    parameterisation or θ; errors name ``fn(start=...)``."""
     n_par = len(parameterisation.names)
     if isinstance(start, AbstractController):
         try:
-            theta0 = parameterisation.from_controller(start)
+            start = parameterisation.from_controller(start)
         except TypeError as e:  # a controller of another kind: name the tuner's argument
             raise TypeError(f"`{fn}(start=...)` must be a controller of the parameterisation "
                             f"({type(parameterisation).__name__}) or θ, got "
                             f"{type(start).__name__}: {e}") from None
-        start = jnp.broadcast_to(theta0, (n, n_par))
+        except ValueError as e:  # a controller outside the parameterisation's bounds
+            raise ValueError(f"`{fn}(start=...)` must lie inside the parameterisation's "
+                             f"bounds: {e}") from None
     theta = jnp.asarray(start, jnp.float64)
-    if theta.shape == (n_par,):  # one θ for every position
+    shapes = f"({n_par},)" if n is None else f"({n_par},) or ({n}, {n_par})"
+    if n is not None and theta.shape == (n_par,):  # one θ for every position
         theta = jnp.broadcast_to(theta, (n, n_par))
-    if theta.shape != (n, n_par):
+    if theta.shape != ((n_par,) if n is None else (n, n_par)):
         raise ValueError(f"`{fn}(start=...)` must be a controller of the parameterisation or "
-                         f"have shape ({n_par},) or ({n}, {n_par}), got {theta.shape}")
-    return theta
+                         f"have shape {shapes}, got {theta.shape}")
+    return _checks.finite(theta, f"{fn}(start=...)")
 
 
 def smooth_max(values: Float[ArrayLike, " n"], sharpness: float) -> Float[Array, ""]:
     r"""A smooth maximum, (1/β) ln((1/n) Σ e^{β v_i}): between the mean (β → 0) and the
-    maximum (β → ∞), below the maximum by at most ln(n)/β."""
+    maximum (β → ∞), below the maximum by at most ln(n)/β; β a finite positive number."""
+    where = "smooth_max(sharpness=...)"
+    if isinstance(sharpness, jax.Array | np.ndarray):
+        sharpness = _checks.check(sharpness, lambda b: (b > 0) & (b < np.inf), where,
+                                  "a finite positive number")
+    else:
+        sharpness = _checks.static_positive(sharpness, where)
     v = jnp.asarray(values)
     return (jax.nn.logsumexp(sharpness * v) - jnp.log(v.shape[0])) / sharpness
 
@@ -272,7 +279,8 @@ class RobustTuning(eqx.Module):
         history: the robust objective at every step, (steps,).
         worst: max over the positions of J at every step, (steps,).
         terms: the objective's terms at ``best_theta`` at each position.
-        seconds: wall time of the steps, compilation apart (s).
+        seconds: wall time of the steps after the first chunk, which compiles (s; 0.0 for a
+            run of one chunk).
     """
 
     positions_m: Float[Array, " n"]
@@ -323,14 +331,8 @@ def tune_robust(
     fn = "tune_robust"
     pos, objective = _check_common(fn, parameterisation, objective, drive, positions_m,
                                    steps, chunk)
-    if not (isinstance(sharpness, (int, float)) and sharpness > 0):
-        raise ValueError(f"`{fn}(sharpness=...)` must be a positive number, got {sharpness!r}")
-    if isinstance(start, AbstractController):
-        start = parameterisation.from_controller(start)
-    theta = jnp.asarray(start, jnp.float64)
-    if theta.shape != (len(parameterisation.names),):
-        raise ValueError(f"`{fn}(start=...)` must be a controller of the parameterisation or "
-                         f"have shape ({len(parameterisation.names)},), got {theta.shape}")
+    sharpness = _checks.static_positive(sharpness, f"{fn}(sharpness=...)")
+    theta = _start(fn, parameterisation, start)
     loss = _RobustLoss(parameterisation, objective, drive, jnp.asarray(pos), float(sharpness))
     opt = default_optimiser("adam", 0.02) if optimiser is None else optimiser
     res = descend(loss, theta, opt, steps, chunk=chunk, progress=fn if progress else None)
@@ -463,6 +465,7 @@ def tune_shared_gains(
     if not (isinstance(n_shared, int) and 0 < n_shared < n_par):
         raise ValueError(f"`{fn}(n_shared=...)` must be an int in [1, {n_par - 1}], got "
                          f"{n_shared!r}")
+    sharpness = _checks.static_positive(sharpness, f"{fn}(sharpness=...)")
     params = (jnp.mean(theta[:, :n_shared], axis=0), theta[:, n_shared:])
     loss = _SharedGainsLoss(parameterisation, objective, drive, jnp.asarray(pos), n_shared,
                             float(sharpness))

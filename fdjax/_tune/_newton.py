@@ -37,6 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from .. import _checks
 from .._drive._model import BallScrewDrive
 from ._local import LocalTuning, _check_common, _start, _terms_at
 from ._objective import Objective
@@ -59,7 +60,12 @@ def trust_region_step(
     Pure and differentiable-free (``jit``, ``vmap``)."""
     g = jnp.asarray(g, jnp.float64)
     H = jnp.asarray(H, jnp.float64)
+    if g.ndim != 1 or H.shape != (g.shape[0], g.shape[0]):
+        raise ValueError(f"`trust_region_step(g=..., H=...)` must have shapes (p,) and (p, p), "
+                         f"got {g.shape} and {H.shape}")
     delta = jnp.asarray(radius, jnp.float64)
+    if _checks.is_concrete(delta):
+        _checks.positive(delta, "trust_region_step(radius=...)")
     w, V = jnp.linalg.eigh(0.5 * (H + H.T))
     gt = V.T @ g
 
@@ -228,7 +234,7 @@ def tune_newton(
         lowest J seen), ``history`` J at the start and at every step's trial point, (steps + 1,
         n), ``evaluations`` ones, (steps, n) (one evaluation with the gradient per step and
         position, and the Hessian on every ``hessian_every``-th), ``seconds`` the steps' wall
-        time after the first, which compiles.
+        time, measured after the first (which compiles) and scaled to all steps at that rate.
     """
     fn = "tune_newton"
     pos, objective = _check_common(fn, parameterisation, objective, drive, positions_m, steps,

@@ -23,6 +23,7 @@ the exact margins and the eigenvalues (:func:`fdjax.loop_margins`, :func:`fdjax.
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import equinox as eqx
 import jax
@@ -47,6 +48,12 @@ __all__ = ["Objective", "ObjectiveTerms"]
 def _scalar(x):
     # weights, widths and scales are traced leaves: a new value compiles nothing
     return jnp.asarray(x, jnp.float64)
+
+
+def _array(x):
+    # the grid is a leaf: a list or a float32 grid becomes the float64 array that jit sees
+    return x if isinstance(x, jax.core.Tracer) else jnp.asarray(_checks.real_array(
+        x, "Objective(freq_hz=...)"), jnp.float64)
 
 
 class ObjectiveTerms(eqx.Module):
@@ -98,7 +105,7 @@ class Objective(eqx.Module):
     """
 
     reference: Trajectory
-    freq_hz: Float[Array, " freq"]
+    freq_hz: Float[Array, " freq"] = eqx.field(converter=_array)
     servo: Servo = Servo()
     twin: TwinOptions | None = eqx.field(static=True, default=None)
     output: str = eqx.field(static=True, default="scale")
@@ -125,9 +132,7 @@ class Objective(eqx.Module):
         if self.output not in ("scale", "tool"):
             raise ValueError(f"`Objective(output=...)` must be 'scale' or 'tool', got "
                              f"{self.output!r}")
-        if not isinstance(self.reference, Trajectory):
-            raise TypeError(f"`Objective(reference=...)` must be an fdjax.Trajectory, got "
-                            f"{type(self.reference).__name__}")
+        _checks.instance(self.reference, Trajectory, "Objective(reference=...)")
         f = jnp.asarray(self.freq_hz)
         if f.ndim != 1 or f.shape[0] < 8:
             raise ValueError(f"`Objective(freq_hz=...)` must be a 1-D grid of at least 8 "
@@ -143,13 +148,28 @@ class Objective(eqx.Module):
             v = getattr(self, name)
             if v.ndim != 0:
                 raise ValueError(f"`Objective({name}=...)` must be a scalar, got shape {v.shape}")
-            if is_concrete(v) and not float(v) >= (0 if name.endswith("weight") else 1e-300):
+            if is_concrete(v) and not (math.isfinite(float(v)) and float(v) >= (
+                    0 if name.endswith("weight") else 1e-300)):
                 kind = "non-negative" if name.endswith("weight") else "positive"
-                raise ValueError(f"`Objective({name}=...)` must be {kind}, got {float(v)!r}")
-        for name in ("current_limit_a", "modulus_margin"):
-            if not float(getattr(self, name)) > 0:
-                raise ValueError(f"`Objective({name}=...)` must be positive, got "
-                                 f"{getattr(self, name)!r}")
+                raise ValueError(f"`Objective({name}=...)` must be finite and {kind}, got "
+                                 f"{float(v)!r}")
+        # the static settings: each fixes what is compiled, so each is checked here
+        for name, ok, expected in (
+            ("modulus_margin", lambda v: 0 < v <= 1, "in (0, 1] (|1 + L| → 1 at high frequency)"),
+            ("gain_margin_db", lambda v: v >= 0, "finite and non-negative (dB)"),
+            ("phase_margin_deg", lambda v: 0 <= v < 180, "in [0, 180) degrees"),
+            ("max_growth_rate", lambda v: True, "finite (1/s)"),
+            ("current_limit_a", lambda v: v > 0, "finite and positive (A)"),
+            ("duration", lambda v: v > 0, "finite and positive (s)"),
+            ("error_bound_m", lambda v: v > 0, "finite and positive (m)"),
+        ):
+            value = getattr(self, name)
+            try:
+                v = _checks.concrete_float(value, f"Objective({name}=...)")
+            except (TypeError, ValueError):
+                v = math.nan
+            if not (math.isfinite(v) and ok(v)):
+                raise ValueError(f"`Objective({name}=...)` must be {expected}, got {value!r}")
 
     def resolved(self, drive: BallScrewDrive, fn: str = "Objective") -> Objective:
         """This objective with its twin's number of kept modes counted for ``drive`` (when the
@@ -161,13 +181,14 @@ class Objective(eqx.Module):
     def _checked(self, fn, controller, drive, position_m):
         """The twin at the position and the discretisation that the run and the open loops
         share (one discrete law and one zero-order-hold plant)."""
-        if not isinstance(controller, AbstractController):
-            raise TypeError(f"`{fn}(controller=...)` must be an fdjax controller, got "
-                            f"{type(controller).__name__}")
-        if not isinstance(drive, BallScrewDrive):
-            raise TypeError(f"`{fn}(drive=...)` must be an fdjax.BallScrewDrive, got "
-                            f"{type(drive).__name__}")
+        _checks.instance(controller, AbstractController, f"{fn}(controller=...)",
+                         "an fdjax controller")
+        _checks.instance(drive, BallScrewDrive, f"{fn}(drive=...)")
         position_m = drive._check_travel(position_m, fn)
+        if position_m.ndim != 0:
+            raise ValueError(f"`{fn}(position_m=...)` must be one table position (a scalar; "
+                             f"jax.vmap the objective over positions), got shape "
+                             f"{position_m.shape}")
         plant = state_space(drive, position_m, twin=self.twin)
         return plant, SampledData().sharing(controller, plant, self.servo)
 

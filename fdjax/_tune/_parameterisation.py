@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from .._checks import concrete_float, fmt, is_concrete
+from .._checks import concrete_float, fmt, instance, is_concrete
 from .._control import DoubleLoop, PIDLoop
 from .._control._controllers import AbstractController
 from .._control._servo import Servo
@@ -81,17 +81,33 @@ def _box(theta: Array, lo: float, hi: float) -> Array:
     return jnp.clip(lo * jnp.exp(math.log(hi / lo) * jax.nn.sigmoid(theta)), lo, hi)
 
 
+_LOGIT_EPS = float(np.finfo(np.float64).eps)
+"""The distance from 0 and 1 at which ``_unbox`` holds σ(θ): |θ| ≤ 36, where ``_box``'s σ has
+saturated, so that a filter on the boundary of the bounds (``to_mcm`` of a large θ) reads back."""
+
+
+def _within(x: Array, lo: float, hi: float, message: str) -> Array:
+    """x with lo ≤ x ≤ hi checked (to 1e-12 of each bound's size: the filters keep log ω, log ξ,
+    log ζ, and a bound comes back from exp(log x) to a few ulps): a ``ValueError`` ending in the
+    value when concrete, an ``eqx.error_if`` with the same message under a transformation
+    (never a silent NaN)."""
+    lo, hi = lo - 1e-12 * abs(lo), hi + 1e-12 * abs(hi)
+    if is_concrete(x):
+        v = np.asarray(x)
+        if not np.all((v >= lo) & (v <= hi)):
+            raise ValueError(f"{message}, got {fmt(v)}")
+        return x
+    return eqx.error_if(x, ~((x >= lo) & (x <= hi)), message)
+
+
 def _unbox(x: Array, lo: float, hi: float, name: str, where: str, *,
            inverted: bool = False) -> Array:
     """The inverse of ``_box``, logit(log(x/lo)/log(hi/lo)); with ``inverted`` the inverse of
-    x = lo^{σ(θ)} on (lo, 1) (the notch depth), logit(log x/log lo)."""
-    if is_concrete(x):
-        v = np.asarray(x)
-        if not np.all((v > lo) & (v < hi)):
-            raise ValueError(
-                f"`{where}`: {name} must lie strictly inside ({lo:.6g}, {hi:.6g}), got {fmt(v)}"
-            )
+    x = lo^{σ(θ)} on (lo, 1) (the notch depth), logit(log x/log lo).  x on the closed interval
+    [lo, hi] (where ``_box`` saturates) reads back as the θ of σ(θ) = ε or 1 − ε."""
+    x = _within(x, lo, hi, f"`{where}`: {name} must lie inside [{lo:.6g}, {hi:.6g}]")
     u = jnp.log(x) / math.log(lo) if inverted else jnp.log(x / lo) / math.log(hi / lo)
+    u = jnp.clip(u, _LOGIT_EPS, 1.0 - _LOGIT_EPS)
     return jnp.log(u) - jnp.log1p(-u)
 
 
@@ -157,11 +173,7 @@ class MCMBounds(eqx.Module):
         """Bounds for a servo: filter frequencies from ``freq_min_hz`` up to
         ``nyquist_fraction`` of its Nyquist frequency; other bounds as the defaults or
         ``kwargs``."""
-        if not isinstance(servo, Servo):
-            raise TypeError(
-                f"`MCMBounds.for_servo(servo=...)` must be an fdjax.Servo, got "
-                f"{type(servo).__name__}"
-            )
+        instance(servo, Servo, "MCMBounds.for_servo(servo=...)")
         if not (0.0 < nyquist_fraction < 1.0):
             raise ValueError(
                 f"`MCMBounds.for_servo(nyquist_fraction=...)` must be in (0, 1), got "
@@ -208,18 +220,15 @@ class MCMBounds(eqx.Module):
                 f"and {nt.omega.shape[0]}"
             )
         w_lo, w_hi = self._omega
-        phi = pk.phi[0]
-        if is_concrete(phi) and not abs(float(phi)) < self.peak_phase_max:
-            raise ValueError(
-                f"`{where}`: the peak phase must lie inside (−{self.peak_phase_max:.6g}, "
-                f"{self.peak_phase_max:.6g}) rad, got {float(phi):.6g}"
-            )
+        pm = self.peak_phase_max
+        phi = _within(pk.phi[0], -pm, pm,
+                      f"`{where}`: the peak phase must lie inside [−{pm:.6g}, {pm:.6g}] rad")
         depth = nt.zeta_n[0] / nt.zeta_d[0]
         return jnp.stack([
             _unbox(pk.K[0], *self.peak_gain, "the peak gain K", where),
             _unbox(pk.omega[0], w_lo, w_hi, "the peak frequency ω (rad/s)", where),
             _unbox(pk.xi[0], *self.peak_damping, "the peak damping ξ", where),
-            jnp.arctanh(phi / self.peak_phase_max),
+            jnp.arctanh(jnp.clip(phi / pm, _LOGIT_EPS - 1.0, 1.0 - _LOGIT_EPS)),
             _unbox(nt.omega[0], w_lo, w_hi, "the notch frequency ω (rad/s)", where),
             _unbox(nt.zeta_d[0], *self.notch_damping, "the notch damping ζ_d", where),
             _unbox(depth, self.notch_depth_min, 1.0, "the notch depth ζ_n/ζ_d", where,
@@ -276,17 +285,9 @@ class DoubleLoopParameterisation(AbstractParameterisation):
 
     def __init__(self, mcm: MCMBounds, reference: DoubleLoop | None = None, *,
                  feedforward: bool = True):
-        if not isinstance(mcm, MCMBounds):
-            raise TypeError(
-                f"`DoubleLoopParameterisation(mcm=...)` must be an fdjax.MCMBounds, got "
-                f"{type(mcm).__name__}"
-            )
+        instance(mcm, MCMBounds, "DoubleLoopParameterisation(mcm=...)")
         ref = DoubleLoop() if reference is None else reference
-        if not isinstance(ref, DoubleLoop):
-            raise TypeError(
-                f"`DoubleLoopParameterisation(reference=...)` must be an fdjax.DoubleLoop, got "
-                f"{type(ref).__name__}"
-            )
+        instance(ref, DoubleLoop, "DoubleLoopParameterisation(reference=...)")
         vals = [ref.kp, ref.kv, ref.ki, ref.k_ffv, ref.k_ffa]
         if not feedforward:
             vals = vals[:3] + [1.0, 1.0]
@@ -317,11 +318,7 @@ class DoubleLoopParameterisation(AbstractParameterisation):
     def from_controller(self, loop: DoubleLoop) -> Float[Array, " 12"]:
         """θ of a double loop whose MCM lies inside the bounds (inverse of
         :meth:`to_controller`)."""
-        if not isinstance(loop, DoubleLoop):
-            raise TypeError(
-                f"`DoubleLoopParameterisation.from_controller(loop=...)` must be an "
-                f"fdjax.DoubleLoop, got {type(loop).__name__}"
-            )
+        instance(loop, DoubleLoop, "DoubleLoopParameterisation.from_controller(loop=...)")
         kp, kv, ki, ffv, ffa = self.reference
         ff = ((loop.k_ffv / ffv, loop.k_ffa / ffa) if self.feedforward
               else (jnp.ones(()), jnp.ones(())))
@@ -354,9 +351,7 @@ class PIDParameterisation(AbstractParameterisation):
     def __init__(self, reference: PIDLoop, *, servo: Servo | None = None,
                  wd_hz: tuple[float, float] | None = None, feedforward: bool = True):
         where = "PIDParameterisation(reference=...)"
-        if not isinstance(reference, PIDLoop):
-            raise TypeError(f"`{where}` must be an fdjax.PIDLoop, got "
-                            f"{type(reference).__name__}")
+        instance(reference, PIDLoop, where)
         vals = [reference.kp, reference.ki, reference.kd, reference.k_ffv, reference.k_ffa]
         if not feedforward:
             vals = vals[:3] + [1.0, 1.0]
@@ -395,8 +390,7 @@ class PIDParameterisation(AbstractParameterisation):
     def from_controller(self, loop: PIDLoop) -> Float[Array, " 6"]:
         """θ of a PID whose ω_d lies inside the bounds (inverse of :meth:`to_controller`)."""
         where = "PIDParameterisation.from_controller(loop=...)"
-        if not isinstance(loop, PIDLoop):
-            raise TypeError(f"`{where}` must be an fdjax.PIDLoop, got {type(loop).__name__}")
+        instance(loop, PIDLoop, where)
         kp, ki, kd, ffv, ffa = self.reference
         lo, hi = _TWO_PI * self.wd_hz[0], _TWO_PI * self.wd_hz[1]
         return jnp.stack([loop.log_kp - math.log(kp), loop.log_ki - math.log(ki),

@@ -30,12 +30,23 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Complex, Float
 
+from .. import _checks
+
 __all__ = ["soft_min", "modulus_distance", "gain_distance", "phase_distance", "margin_penalty"]
+
+
+def _positive(value, where: str):
+    """A finite positive setting, checked when the caller gives a number (an objective's traced
+    leaves were checked where the objective was built)."""
+    if _checks.is_concrete(value):
+        _checks.positive(value, where)
+    return value
 
 
 def soft_min(d: Float[ArrayLike, "*batch freq"], beta: float) -> Float[Array, "*batch"]:
     r"""Smooth minimum over the last axis, −(1/β) log Σ_k e^{−β d_k}: at most min d, and above
     min d − (log n)/β."""
+    beta = _positive(beta, "soft_min(beta=...)")
     d = jnp.asarray(d)
     return -jax.nn.logsumexp(-beta * d, axis=-1) / beta
 
@@ -96,6 +107,8 @@ def margin_penalty(
     phase-margin arc (zero distance is the violation there).  ``beta`` sets the smooth
     minimum's sharpness (error ≤ log(n)/β), ``width`` w the penalty's scale.
     """
+    beta = _positive(beta, "margin_penalty(beta=...)")
+    width = _positive(width, "margin_penalty(width=...)")
     L = jnp.asarray(L)
     terms = (
         (modulus_distance(L), modulus_margin),

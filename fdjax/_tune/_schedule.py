@@ -26,10 +26,12 @@ from __future__ import annotations
 import json
 import math
 import os
+import pathlib
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
@@ -81,8 +83,7 @@ class ATANetwork(eqx.Module):
                 f"`ATANetwork(travel_m=...)` must be a (min, max) pair in m, got {travel_m!r}; "
                 f"table positions are in metres: {hi:.6g} mm is {hi * 1e-3:.6g} m"
             )
-        if not (isinstance(width, int) and 1 <= width <= 256):
-            raise ValueError(f"`ATANetwork(width=...)` must be an int in [1, 256], got {width!r}")
+        width = _checks.static_int(width, "ATANetwork(width=...)", 1, 256)
         if not isinstance(gains, bool):
             raise TypeError(f"`ATANetwork(gains=...)` must be a bool, got {gains!r}")
         key = jax.random.PRNGKey(0) if key is None else key
@@ -160,9 +161,7 @@ class ScheduledLoop(AbstractController):
     def __init__(self, loop: DoubleLoop, network: ATANetwork, bounds: MCMBounds):
         for name, value, cls in (("loop", loop, DoubleLoop), ("network", network, ATANetwork),
                                  ("bounds", bounds, MCMBounds)):
-            if not isinstance(value, cls):
-                raise TypeError(f"`ScheduledLoop({name}=...)` must be an fdjax.{cls.__name__}, "
-                                f"got {type(value).__name__}")
+            _checks.instance(value, cls, f"ScheduledLoop({name}=...)")
         # the loop carries the gains only: its own MCM is replaced by the network's
         self.loop = eqx.tree_at(lambda c: c.mcm, loop, MCM())
         self.network = network
@@ -186,7 +185,8 @@ class ScheduledLoop(AbstractController):
         ``notch_zeta_n``, ``notch_zeta_d``; the feedback gains ``kp`` (1/s), ``kv`` (A·s/m),
         ``ki`` (rad/s), the same in every row unless the network schedules them.  Columns of a
         CSV or a JSON table."""
-        y = jnp.atleast_1d(jnp.asarray(positions_m, jnp.float64))
+        y = jnp.atleast_1d(_checks.real_array(positions_m,
+                                              "ScheduledLoop.filter_table(positions_m=...)"))
         if y.ndim != 1:
             raise ValueError(f"`ScheduledLoop.filter_table(positions_m=...)` must be 1-D, got "
                              f"shape {y.shape}")
@@ -235,12 +235,8 @@ class InterpolatedLoop(AbstractController):
     bounds: MCMBounds
 
     def __init__(self, loop: DoubleLoop, positions_m, theta, bounds: MCMBounds):
-        if not isinstance(loop, DoubleLoop):
-            raise TypeError(f"`InterpolatedLoop(loop=...)` must be an fdjax.DoubleLoop, got "
-                            f"{type(loop).__name__}")
-        if not isinstance(bounds, MCMBounds):
-            raise TypeError(f"`InterpolatedLoop(bounds=...)` must be an fdjax.MCMBounds, got "
-                            f"{type(bounds).__name__}")
+        _checks.instance(loop, DoubleLoop, "InterpolatedLoop(loop=...)")
+        _checks.instance(bounds, MCMBounds, "InterpolatedLoop(bounds=...)")
         y = jnp.asarray(positions_m, jnp.float64)
         t = jnp.asarray(theta, jnp.float64)
         if y.ndim != 1 or y.shape[0] < 2 or t.shape != (y.shape[0], len(MCM_PARAMETERS)):
@@ -254,13 +250,31 @@ class InterpolatedLoop(AbstractController):
         self.theta = t
         self.bounds = bounds
 
+    def _position(self, position_m, where: str):
+        """A finite real position (m).  Outside the design positions the end designs hold, so
+        any finite value is one; but a value whose thousandth lies between the design
+        positions (and which itself does not) was given in millimetres, and is refused."""
+        y = _checks.finite(_checks.real_array(position_m, where), where)
+        if _checks.is_concrete(y) and _checks.is_concrete(self.positions_m):
+            v, ys = np.asarray(y), np.asarray(self.positions_m)
+            lo, hi = float(ys[0]), float(ys[-1])
+            mm = ((v < lo) | (v > hi)) & (v * 1e-3 >= lo) & (v * 1e-3 <= hi)
+            if np.any(mm):
+                bad = float(v[mm][0]) if v.ndim else float(v)
+                raise ValueError(f"`{where}` must be a table position in metres (the designs "
+                                 f"lie at {lo:.6g} … {hi:.6g} m), got {bad:.6g}; "
+                                 f"{bad:.6g} mm is {bad * 1e-3:.6g} m")
+        return y
+
     def normalised(self, position_m: Float[ArrayLike, ""]) -> Float[Array, " 7"]:
         """θ(Y) (class docstring)."""
-        y = jnp.asarray(position_m, jnp.float64)
+        y = self._position(position_m, "InterpolatedLoop.normalised(position_m=...)")
         return jax.vmap(lambda col: jnp.interp(y, self.positions_m, col))(self.theta.T)
 
     def controller(self, position_m: Float[ArrayLike, ""]) -> DoubleLoop:
-        """The fixed double loop at table position Y (m)."""
+        """The fixed double loop at table position Y (m); outside the design positions the
+        end designs hold."""
+        position_m = self._position(position_m, "InterpolatedLoop.controller(position_m=...)")
         mcm = self.bounds.to_mcm(self.normalised(position_m))
         return eqx.tree_at(lambda c: c.mcm, self.loop, mcm)
 
@@ -288,11 +302,9 @@ def fit_network(
     ``optax.adam(1e-2)``) on the network's weights.  Returns the trained network and the loss
     after each step.
     """
-    if not isinstance(network, ATANetwork):
-        raise TypeError(f"`fit_network(network=...)` must be an fdjax.ATANetwork, got "
-                        f"{type(network).__name__}")
-    y = jnp.asarray(positions_m, jnp.float64)
-    t = jnp.asarray(targets, jnp.float64)
+    _checks.instance(network, ATANetwork, "fit_network(network=...)")
+    y = _checks.real_array(positions_m, "fit_network(positions_m=...)")
+    t = _checks.real_array(targets, "fit_network(targets=...)")
     m = len(network.outputs)
     if y.ndim != 1 or t.shape != (y.shape[0], m):
         raise ValueError(
@@ -377,23 +389,50 @@ def save_schedule(path: str | os.PathLike, schedule: ScheduledLoop, *,
     hyperparameters, units and ``metadata`` (e.g. the drive it was tuned for) to the JSON file
     beside it (``path`` with suffix ``.json``).  :func:`load_schedule` reads both back,
     bit for bit."""
-    if not isinstance(schedule, ScheduledLoop):
-        raise TypeError(f"`save_schedule(schedule=...)` must be an fdjax.ScheduledLoop, got "
-                        f"{type(schedule).__name__}")
+    _checks.instance(schedule, ScheduledLoop, "save_schedule(schedule=...)")
     path = _schedule_path("save_schedule", path)
     folder = os.path.dirname(path)
     if folder and not os.path.isdir(folder):
         raise FileNotFoundError(f"`save_schedule(path=...)`: no folder {folder!r}")
-    meta = _hyperparameters(schedule, metadata)
-    eqx.tree_serialise_leaves(path, schedule)
-    with open(os.path.splitext(path)[0] + ".json", "w") as f:
-        json.dump(meta, f, indent=2, ensure_ascii=False)
+    write_pair(path, schedule, os.path.splitext(path)[0] + ".json",
+               _hyperparameters(schedule, metadata), "save_schedule")
+
+
+def write_pair(leaves_path: str, tree, json_path: str, meta: dict, fn: str) -> None:
+    """``tree``'s leaves to ``leaves_path`` and ``meta`` to ``json_path``, each written whole
+    or not at all (a temporary file beside it, then renamed): a failure leaves the files
+    that were there before.  Metadata that JSON cannot hold is a ``ValueError`` naming
+    ``fn(metadata=...)``, raised before anything is written."""
+    try:
+        text = json.dumps(meta, indent=2, ensure_ascii=False)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"`{fn}(metadata=...)` must hold only what JSON can (strings, "
+                         f"numbers, lists, dicts; a JAX or NumPy array as .tolist()): "
+                         f"{err}") from None
+    tmp = []
+    try:
+        for target, write in ((leaves_path, lambda t: eqx.tree_serialise_leaves(t, tree)),
+                              (json_path, lambda t: pathlib.Path(t).write_text(
+                                  text, encoding="utf-8"))):
+            tmp.append((target + ".tmp", target))
+            write(tmp[-1][0])
+        for t, target in tmp:
+            os.replace(t, target)
+    finally:
+        for t, _ in tmp:
+            if os.path.exists(t):
+                os.remove(t)
 
 
 def load_schedule(path: str | os.PathLike) -> ScheduledLoop:
     """Read a schedule written by :func:`save_schedule` (the leaves at ``path``, the
     hyperparameters from the JSON file beside it)."""
     path = _schedule_path("load_schedule", path)
+    if os.path.isdir(path):
+        hint = os.path.join(path, "schedule.eqx")
+        hint = f"; did you mean {hint!r}?" if os.path.exists(hint) else ""
+        raise IsADirectoryError(f"`load_schedule(path=...)` must be a schedule's file (e.g. "
+                                f"'schedule.eqx'), got the folder {path!r}{hint}")
     meta_path = os.path.splitext(path)[0] + ".json"
     if not os.path.exists(path):
         raise FileNotFoundError(f"`load_schedule(path=...)`: no file {path!r}")

@@ -39,6 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from .._checks import instance
 from .._control._controllers import AbstractController
 from .._control._reference import (
     reference_controller,
@@ -228,13 +229,16 @@ def synthesise(
     programs are released when the process holds many memory maps (each program maps its
     machine code; a process may hold 65530)."""
     drive = reference_drive() if drive is None else drive
-    if not isinstance(drive, BallScrewDrive):
-        raise TypeError(f"`synthesise(drive=...)` must be an fdjax.BallScrewDrive, got "
-                        f"{type(drive).__name__}")
+    instance(drive, BallScrewDrive, "synthesise(drive=...)")
     servo = reference_servo() if servo is None else servo
-    if not isinstance(servo, Servo):
-        raise TypeError(f"`synthesise(servo=...)` must be an fdjax.Servo, got "
-                        f"{type(servo).__name__}")
+    instance(servo, Servo, "synthesise(servo=...)")
+    lo, hi = drive.travel_m
+    if not (lo <= DESIGN_POSITIONS_M[0] and DESIGN_POSITIONS_M[-1] <= hi):
+        raise ValueError(
+            f"`synthesise(drive=...)` must have a travel that holds the paper's design positions "
+            f"{DESIGN_POSITIONS_M[0]:g}–{DESIGN_POSITIONS_M[-1]:g} m and {FIXED_POSITION_M:g} m "
+            f"(Fig. 18), got [{lo:.6g}, {hi:.6g}] m; for other positions run the tuners "
+            f"(tune_local, tune_shared_gains, fit_network, train_schedule) directly")
     seconds = {}
     if not (isinstance(margin_width, (int, float)) and margin_width > 0):
         raise ValueError(f"`synthesise(margin_width=...)` must be a positive number, got "
@@ -390,9 +394,21 @@ def evaluate(
     (:func:`certify`'s checks).  Per controller: ``rms_error_um`` (None where unstable),
     ``stable``, ``gain_margin_db``, ``phase_margin_deg``, ``modulus_margin`` (lists over the
     positions) and ``certificate``.  Controllers of the same kind share one compiled program."""
+    if not isinstance(controllers, dict) or not controllers:
+        raise TypeError("`evaluate(controllers=...)` must be a non-empty dict of name → "
+                        f"controller, got {type(controllers).__name__}")
+    for name, c in controllers.items():
+        instance(c, AbstractController, f"evaluate(controllers[{name!r}]=...)",
+                         "an fdjax controller")
+    instance(drive, BallScrewDrive, "evaluate(drive=...)")
     servo = reference_servo() if servo is None else servo
+    instance(servo, Servo, "evaluate(servo=...)")
     motion = tuning_motion() if motion is None else motion
-    y = np.asarray(drive._check_travel(np.asarray(positions_m, float), "evaluate", "positions_m"))
+    instance(motion, Trajectory, "evaluate(motion=...)")
+    y = np.atleast_1d(np.asarray(drive._check_travel(positions_m, "evaluate", "positions_m")))
+    if y.ndim != 1:
+        raise ValueError(f"`evaluate(positions_m=...)` must be a position or a 1-D array of "
+                         f"positions, got shape {y.shape}")
     release()
     twin = TwinOptions().resolve(drive, "evaluate")
     f = default_grid(servo)
