@@ -2,15 +2,20 @@
 
     fdjax reproduce [--out DIR] [--quick]
                                 the whole chain on the reference drive: the figures and
-                                summary.json (the numbers the README quotes)
+                                summary.json (the numbers the README quotes); Fig. 18 tunes
+                                the controllers afresh (fdjax.synthesise, minutes), --quick
+                                evaluates the designs shipped with fdjax instead
     fdjax demo    [--out DIR]   ``reproduce --quick`` (what ``make demo`` runs)
     fdjax figures [--out DIR]   the paper's figures so far (Figs. 2, 3, 5, 10-12, 14, 16, 17)
     fdjax modes   [--out DIR] [--positions N] [--n-modes N] [--source fit|model]
-                                modes of h21 over the travel: table, CSV and JSON
+                                modes of h21 over the travel: a table; CSV and JSON with --out
     fdjax tune    [--out DIR] [--quick]
                                 gradient synthesis: six local MCMs, PID baselines, the ATA
                                 network by backpropagation and end to end, Fig. 18, the
                                 certificates; writes DIR/schedule.eqx (fdjax.load_schedule)
+    fdjax --version             the installed version
+
+Every --out folder is created, or refused, before any computation starts.
 """
 
 from __future__ import annotations
@@ -261,18 +266,65 @@ def discretisation_summary() -> dict:
             "max_relative_error": err}
 
 
-def _loop_line(name: str, m: dict) -> str:
-    return (f"speed loop GM ≥ {min(m['speed']['gain_margin']):.2f}, PM ≥ "
-            f"{min(m['speed']['phase_margin_deg']):.1f}°; position loop GM ≥ "
-            f"{min(m['position']['gain_margin']):.2f}, PM ≥ "
-            f"{min(m['position']['phase_margin_deg']):.1f}° ({name})")
+def _db(gain: float) -> float:
+    import math
+
+    return 20.0 * math.log10(gain) if gain > 0 else -math.inf
+
+
+def _where(flags: list[bool], positions_m: list[float]) -> str:
+    """The positions where ``flags`` holds, as runs over the grid: "from 500 mm",
+    "up to 200 mm", "at 300–400 mm", "at 250 mm", "at every position"."""
+    n, runs, k = len(flags), [], 0
+    while k < n:
+        if not flags[k]:
+            k += 1
+            continue
+        j = k
+        while j + 1 < n and flags[j + 1]:
+            j += 1
+        a, b = (f"{positions_m[i] * 1e3:.0f} mm" for i in (k, j))
+        if k == 0 and j == n - 1:
+            runs.append("at every position")
+        elif j == n - 1:
+            runs.append(f"from {a}")
+        elif k == 0:
+            runs.append(f"up to {b}")
+        else:
+            runs.append(f"at {a}" if k == j else f"at {a[:-3]}–{b}")
+        k = j + 1
+    return ", ".join(runs)
+
+
+def _loop_line(name: str, m: dict, positions_m: list[float]) -> str:
+    """One model of :func:`loop_summary` in a line: the least margins over the positions
+    (gain margins in dB) and where the closed loop is unstable.
+
+    Unstable where a gain margin is below 0 dB: computed here from the margins alone, this
+    agrees position by position with the eigenvalues of :func:`fdjax.check_stability` for the
+    reference controller in both loop models (checked at 13 and 61 positions: unstable from
+    480 mm sampled, 520 mm continuous).  The phase margin's sign does not tell (the
+    position loop's PM is negative at stable positions just before the boundary)."""
+    parts = []
+    for loop in ("speed", "position"):
+        gm, pm = m[loop]["gain_margin"], m[loop]["phase_margin_deg"]
+        parts.append(f"{loop} loop GM ≥ {_db(min(gm)):.1f} dB, PM ≥ {min(pm):.1f}°")
+    bad = [min(gs, gp) < 1.0 for gs, gp in zip(m["speed"]["gain_margin"],
+                                              m["position"]["gain_margin"])]
+    where = f"; unstable (GM < 0 dB) {_where(bad, positions_m)}" if any(bad) else ""
+    return f"{name}: " + "; ".join(parts) + where
 
 
 def reproduce(out: str, quick: bool = False) -> dict:
     """The whole chain on the reference drive: every figure so far, and ``summary.json``.
 
-    ``quick`` sweeps 13 table positions instead of 61 (Figs. 10-12, 14 and the margins) and
-    evaluates the designs shipped with fdjax for Fig. 18 instead of tuning them."""
+    ``quick`` evaluates the designs shipped with fdjax (:data:`SHIPPED_DESIGNS`) for Fig. 18
+    instead of tuning them afresh (:func:`fdjax.synthesise`, minutes), checks their
+    certificates on Fig. 18's 10 mm grid instead of every 1 mm (no ``certificate_*.csv``, no
+    ``convergence.png``, no ``local_designs.csv``), and sweeps 13 table positions instead of
+    61 for Figs. 10-12, the margins (``double_loop``) and the printed peaks of |h21|.
+    Everything else (Figs. 2, 3, 5, 14, 16, 17, Table 1, the tracking errors, Fig. 18's 61
+    positions) is the same."""
     import numpy as np
 
     import fdjax
@@ -290,9 +342,11 @@ def reproduce(out: str, quick: bool = False) -> dict:
           "(frequency ±3 %, damping ±25 %, phase ±15°)")
     loop_figures(out, pos, f, H)
     loop = loop_summary(pos, f, H)
-    print("Reference controller over the travel:")
-    print("  " + _loop_line("sampled, as the servo runs it", loop["sampled"]))
-    print("  " + _loop_line("continuous, exact delay", loop["continuous"]))
+    print(f"Reference controller over the travel, least margins at {len(pos)} positions "
+          "(gain margins in dB):")
+    for model, name in (("sampled", "sampled, as the servo runs it"),
+                        ("continuous", "continuous, exact delay")):
+        print("  " + _loop_line(name, loop[model], loop["positions_m"]))
     rms = simulation_figures(out)
     print(f"Reciprocating motion at {FIG16_POSITION_M * 1e3:.0f} mm, RMS scale error (µm): "
           + ", ".join(f"{k} {v * 1e6:.3g}" for k, v in rms.items()))
@@ -447,16 +501,21 @@ def control_report(out: str, controllers: dict, *, certify_step_mm: float | None
     return control
 
 
+# `fdjax tune --quick`: a tenth of `fdjax.synthesise`'s default steps, except the common gains
+# (a fifth), the network's training (half) and the end-to-end training (a sixth).
+QUICK_TUNE_STEPS = dict(local_steps=30, shared_steps=20, pid_steps=30, network_steps=2000,
+                        e2e_steps=10, simplex_evaluations=300, refine_steps=10, robust_steps=12)
+
+
 def tune(out: str, quick: bool = False) -> dict:
     """``fdjax tune``: the local tunings, the baselines, the network by backpropagation and end
     to end (:func:`fdjax.synthesise`), then Fig. 18, the certificates and the files of
-    :func:`control_report`.  ``quick``: a tenth of the steps, certification every 10 mm."""
+    :func:`control_report`.  ``quick``: fewer optimiser steps (:data:`QUICK_TUNE_STEPS`),
+    certificates on Fig. 18's 10 mm grid instead of every 1 mm."""
     import fdjax
 
     start = time.perf_counter()
-    steps = dict(local_steps=30, shared_steps=20, pid_steps=30, network_steps=2000,
-                 e2e_steps=10, simplex_evaluations=300, refine_steps=10,
-                 robust_steps=12) if quick else {}
+    steps = QUICK_TUNE_STEPS if quick else {}
     syn = fdjax.synthesise(progress=True, **steps)
     control = control_report(out, syn.controllers, synthesis=syn,
                              certify_step_mm=None if quick else 1.0,
@@ -576,23 +635,76 @@ def _count(what: str, minimum: int):
 COMMANDS = ("reproduce", "demo", "figures", "modes", "tune")
 
 
+class _Version(argparse.Action):
+    """``--version``: the installed package's version, looked up only when asked (``--help``
+    stays free of it)."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, help=None):
+        super().__init__(option_strings, dest=dest, default=argparse.SUPPRESS, nargs=0,
+                         help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        from importlib.metadata import PackageNotFoundError, version
+
+        try:
+            v = version("fdjax")
+        except PackageNotFoundError:  # run from a source tree that pip has not installed
+            import fdjax
+
+            v = fdjax.__version__
+        print(f"{parser.prog} {v}")
+        parser.exit()
+
+
+def _out_problem(path: str) -> str | None:
+    """Why ``path`` cannot be the output folder; None when it is one (created if missing)."""
+    if not path:
+        return "an empty path; give a directory"
+    if os.path.exists(path) and not os.path.isdir(path):
+        return "exists and is not a directory"
+    try:
+        os.makedirs(path, exist_ok=True)
+    except OSError as exc:
+        # name the part of the path that stands in the way when it is a file
+        head = os.path.dirname(os.path.normpath(path))
+        while head and not os.path.lexists(head):
+            head = os.path.dirname(head)
+        if head and os.path.exists(head) and not os.path.isdir(head):
+            return f"cannot create it: {head} is not a directory"
+        return f"cannot create it: {exc.strerror or exc}"
+    if not os.access(path, os.W_OK | os.X_OK):
+        return "the directory is not writable"
+    return None
+
+
+def _out_option(p: argparse.ArgumentParser, default: str | None, help: str | None = None):
+    p.add_argument("--out", metavar="DIR", default=default,
+                   help=help or f"output folder, created if missing (default {default})")
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="fdjax", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter,
                                      allow_abbrev=False)
+    parser.add_argument("--version", action=_Version, help="print the version and exit")
     sub = parser.add_subparsers(dest="command", required=True, metavar="{" + ",".join(COMMANDS)
                                 + "}")
-    p = sub.add_parser("reproduce", help="the whole chain: figures and summary.json",
+    p = sub.add_parser("reproduce", help="the whole chain: figures, Fig. 18 and summary.json",
                        allow_abbrev=False)
-    p.add_argument("--out", default="build/reproduce", help="output folder")
-    p.add_argument("--quick", action="store_true", help="13 table positions instead of 61")
+    _out_option(p, "build/reproduce")
+    p.add_argument("--quick", action="store_true",
+                   help="evaluate the designs shipped with fdjax (fdjax/data/reference_designs) "
+                        "for Fig. 18 instead of tuning them afresh (minutes), certify them every "
+                        "10 mm instead of every 1 mm, and sweep 13 table positions instead of 61 "
+                        "(Figs. 10-12, the margins, the |h21| peaks)")
     p = sub.add_parser("demo", help="reproduce --quick (what make demo runs)", allow_abbrev=False)
-    p.add_argument("--out", default="build/demo", help="output folder (default build/demo)")
-    p = sub.add_parser("figures", help="the paper's dynamics figures", allow_abbrev=False)
-    p.add_argument("--out", default="build/figures", help="output folder")
-    p = sub.add_parser("modes", help="modes of h21 over the travel (table, CSV, JSON)",
+    _out_option(p, "build/demo")
+    p = sub.add_parser("figures", help="the paper's Figs. 2, 3, 5, 10-12, 14, 16, 17",
                        allow_abbrev=False)
-    p.add_argument("--out", default=None, help="folder for modes.csv and modes.json")
+    _out_option(p, "build/figures")
+    p = sub.add_parser("modes", help="modes of h21 over the travel (a table; CSV and JSON with "
+                       "--out)", allow_abbrev=False)
+    _out_option(p, None, "folder for modes.csv and modes.json (default: print the table only)")
     p.add_argument("--positions", type=_count("the number of table positions spread over the "
                                               "travel (a count, not a position in m or mm)", 2),
                    default=13, metavar="N",
@@ -600,15 +712,24 @@ def _parser() -> argparse.ArgumentParser:
                         "not a position; default 13)")
     p.add_argument("--n-modes", type=_count("the number of modes", 1), default=None,
                    metavar="N", help="report the lowest N modes (default: every mode in "
-                   "10-3000 Hz; the identification chooses its order itself)")
+                   "10-3000 Hz; with --source fit the identification chooses its order "
+                   "itself)")
     p.add_argument("--source", choices=("fit", "model"), default="fit",
-                   help="identify from the FRF (fit) or eigen-analysis of the twin (model)")
+                   help="identify from the FRF (fit, default) or eigen-analysis of the twin "
+                        "(model)")
     p = sub.add_parser("tune", help="gradient synthesis of the scheduled MCM (paper Fig. 18)",
                        allow_abbrev=False)
-    p.add_argument("--out", default="build/tune", help="output folder (default build/tune)")
+    _out_option(p, "build/tune")
     p.add_argument("--quick", action="store_true",
-                   help="a tenth of the optimiser steps, certification every 10 mm")
+                   help="fewer optimiser steps (a tenth in most stages; the common gains a "
+                        "fifth, the network training half, end to end a sixth) and "
+                        "certificates every 10 mm instead of every 1 mm")
     return parser
+
+
+def _subparser(parser: argparse.ArgumentParser, command: str) -> argparse.ArgumentParser:
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return sub.choices[command]
 
 
 def main(argv=None) -> int:
@@ -616,8 +737,8 @@ def main(argv=None) -> int:
     parser = _parser()
     argv = sys.argv[1:] if argv is None else list(argv)
     word = next((a for a in argv if not a.startswith("-")), None)
-    if word is not None and word not in COMMANDS and not any(a in ("-h", "--help") for a in
-                                                             argv[:argv.index(word)]):
+    if word is not None and word not in COMMANDS and not any(a in ("-h", "--help", "--version")
+                                                             for a in argv[:argv.index(word)]):
         import difflib
 
         close = difflib.get_close_matches(word, COMMANDS, n=1)
@@ -627,20 +748,23 @@ def main(argv=None) -> int:
     if extra:  # argparse's message, with the closest option of the command when one is close
         import difflib
 
-        sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
-        options = [o for a in sub.choices[args.command]._actions for o in a.option_strings
+        options = [o for a in _subparser(parser, args.command)._actions for o in a.option_strings
                    if o.startswith("--") and o != "--help"]
         typed = [a for a in extra if a.startswith("--")]
         close = difflib.get_close_matches(typed[0].split("=")[0], options, n=1) if typed else []
         hint = f"; did you mean {close[0]!r}?" if close else ""
         parser.error(f"unrecognized arguments: {' '.join(extra)}{hint} (options of "
                      f"{args.command!r}: {', '.join(options)})")
+    # the output folder before any work: a bad --out fails now, not after minutes of computing
+    if getattr(args, "out", None) is not None:
+        problem = _out_problem(args.out)
+        if problem is not None:
+            _subparser(parser, args.command).error(f"--out {args.out}: {problem}")
     if args.command == "reproduce":
         reproduce(args.out, quick=args.quick)
     elif args.command == "demo":
         reproduce(args.out, quick=True)
     elif args.command == "figures":
-        os.makedirs(args.out, exist_ok=True)
         three_mass_figures(args.out)
         pos, f, H = drive_figures(args.out)
         loop_figures(args.out, pos, f, H)

@@ -2,6 +2,7 @@
 (:mod:`fdjax._control._reference`)."""
 
 import ast
+import importlib.metadata
 import json
 import os
 import pathlib
@@ -53,7 +54,14 @@ def test_demo_writes_figures(tmp_path):
     assert "103.7 Hz, 154.5 Hz" in text
     assert "Y_table =   100 mm" in text
     assert "RMS scale error" in text
-    assert "(sampled, as the servo runs it)" in text and "(continuous, exact delay)" in text
+    assert "least margins at 13 positions (gain margins in dB)" in text
+    # the reference controller's margins in dB (sampled speed loop: GM 4.25 = 12.6 dB), and
+    # where it is unstable: from 480 mm sampled, 520 mm continuous (eigenvalues,
+    # fdjax.check_stability), so from the 13-position grid's 500 and 550 mm
+    assert "  sampled, as the servo runs it: speed loop GM ≥ 12.6 dB, PM ≥ 53.5°" in text
+    assert "; unstable (GM < 0 dB) from 500 mm\n" in text
+    assert "  continuous, exact delay: speed loop GM ≥ " in text
+    assert "; unstable (GM < 0 dB) from 550 mm\n" in text
     # summary.json: the numbers the chain produced, consistent with what the tests establish
     s = json.loads((out / "summary.json").read_text())
     assert s["quick"] is True
@@ -182,6 +190,92 @@ def test_argument_errors(argv, message, capsys):
     assert message in err, err
 
 
+# ---------------------------------------------------------------------- --out before any work
+def _no_work(monkeypatch):
+    """Every command's work raises: a test that reaches it has started computing."""
+    def work(*args, **kwargs):
+        raise AssertionError("the command started its work")
+
+    for name in ("reproduce", "tune", "modes", "three_mass_figures", "drive_figures",
+                 "loop_figures", "simulation_figures"):
+        monkeypatch.setattr(cli, name, work)
+
+
+@pytest.mark.parametrize("command", ["reproduce", "demo", "figures", "modes", "tune"])
+@pytest.mark.parametrize("where, reason", [
+    ("file", "exists and is not a directory"),
+    ("file/sub", "cannot create it: {tmp}/file is not a directory"),
+    ("file/a/b", "cannot create it: {tmp}/file is not a directory"),
+], ids=["existing-file", "under-a-file", "deep-under-a-file"])
+def test_out_is_checked_before_any_work(command, where, reason, tmp_path, monkeypatch, capsys):
+    _no_work(monkeypatch)
+    (tmp_path / "file").write_text("not a folder")
+    out = f"{tmp_path}/{where}"
+    extra = ["--quick"] if command in ("reproduce", "tune") else []
+    with pytest.raises(SystemExit) as exc:
+        cli.main([command, *extra, "--out", out])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert err.splitlines()[-1] == (f"fdjax {command}: error: --out {out}: "
+                                    + reason.format(tmp=tmp_path)), err
+    assert "Traceback" not in err
+    assert (tmp_path / "file").read_text() == "not a folder"
+
+
+def test_out_empty_is_refused(monkeypatch, capsys):
+    _no_work(monkeypatch)
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["modes", "--out="])
+    assert exc.value.code == 2
+    assert capsys.readouterr().err.splitlines()[-1] == (
+        "fdjax modes: error: --out : an empty path; give a directory")
+
+
+@pytest.mark.parametrize("command", ["reproduce", "demo", "figures", "modes", "tune"])
+def test_out_is_created_before_any_work(command, tmp_path, monkeypatch):
+    out = tmp_path / "a" / "b"
+    seen = []
+    monkeypatch.setattr(cli, "reproduce", lambda o, quick: seen.append(os.path.isdir(o)))
+    monkeypatch.setattr(cli, "tune", lambda o, quick: seen.append(os.path.isdir(o)))
+    monkeypatch.setattr(cli, "modes", lambda o, *a: seen.append(os.path.isdir(o)))
+    monkeypatch.setattr(cli, "three_mass_figures", lambda o: seen.append(os.path.isdir(o)))
+    monkeypatch.setattr(cli, "drive_figures", lambda o: (None, None, None))
+    monkeypatch.setattr(cli, "loop_figures", lambda *a: None)
+    monkeypatch.setattr(cli, "simulation_figures", lambda o: None)
+    assert cli.main([command, "--out", str(out)]) == 0
+    assert seen == [True]
+
+
+# ---------------------------------------------------------------------- --version, --help
+def test_version(capsys):
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["--version"])
+    assert exc.value.code == 0
+    assert capsys.readouterr().out == f"fdjax {importlib.metadata.version('fdjax')}\n"
+
+
+def test_version_from_a_source_tree(monkeypatch, capsys):
+    """Without the package's metadata (not pip-installed), the version fdjax itself carries."""
+    def missing(name):
+        raise importlib.metadata.PackageNotFoundError(name)
+
+    monkeypatch.setattr(importlib.metadata, "version", missing)
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["--version"])
+    assert exc.value.code == 0
+    assert capsys.readouterr().out == f"fdjax {fdjax.__version__}\n"
+
+
+def test_reproduce_help_says_what_quick_does(capsys):
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["reproduce", "--help"])
+    assert exc.value.code == 0
+    text = " ".join(capsys.readouterr().out.split())
+    assert ("--quick evaluate the designs shipped with fdjax (fdjax/data/reference_designs) "
+            "for Fig. 18 instead of tuning them afresh") in text
+    assert "13 table positions instead of 61" in text
+
+
 def test_help_lists_the_commands(capsys):
     with pytest.raises(SystemExit) as exc:
         cli.main(["--help"])
@@ -189,6 +283,34 @@ def test_help_lists_the_commands(capsys):
     out = capsys.readouterr().out
     for command in cli.COMMANDS:
         assert f"fdjax {command}" in out
+
+
+# ---------------------------------------------------------------------- printed margins
+_GRID_M = [round(0.1 + 0.05 * k, 10) for k in range(13)]
+
+
+def _margins(gm_speed, gm_position):
+    return {"speed": {"gain_margin": gm_speed, "phase_margin_deg": [60.0] * len(gm_speed)},
+            "position": {"gain_margin": gm_position,
+                         "phase_margin_deg": [80.0] * (len(gm_position) - 1) + [-10.25]}}
+
+
+def test_loop_line_in_db_and_where_unstable():
+    """Gain margins print in dB (20 log10: 4.25 → 12.57 dB, 0.8 → −1.94 dB); the positions
+    where a gain margin is below 0 dB are named as runs of the grid."""
+    # the sampled position loop of the reference controller (demo): below 1 from 500 mm
+    position = [1.862, 1.685, 1.531, 1.397, 1.282, 1.184, 1.101, 1.03, 0.97, 0.918, 0.873,
+                0.834, 0.8]
+    line = cli._loop_line("sampled", _margins([4.25] * 13, position), _GRID_M)
+    assert line == ("sampled: speed loop GM ≥ 12.6 dB, PM ≥ 60.0°; position loop GM ≥ "
+                    "-1.9 dB, PM ≥ -10.2°; unstable (GM < 0 dB) from 500 mm")
+    assert cli._loop_line("x", _margins([4.25] * 13, [2.0] * 13), _GRID_M) == (
+        "x: speed loop GM ≥ 12.6 dB, PM ≥ 60.0°; position loop GM ≥ 6.0 dB, PM ≥ -10.2°")
+    speed = [0.5, 0.9] + [2.0] * 4 + [0.99] + [2.0] * 2 + [0.9] * 3 + [2.0]
+    assert cli._loop_line("x", _margins(speed, [2.0] * 13), _GRID_M).endswith(
+        "; unstable (GM < 0 dB) up to 150 mm, at 400 mm, at 550–650 mm")
+    assert cli._where([True] * 3, [0.1, 0.2, 0.3]) == "at every position"
+    assert cli._where([False, True, False], [0.1, 0.2, 0.3]) == "at 200 mm"
 
 
 # ---------------------------------------------------------------------- --help is light
@@ -268,9 +390,10 @@ def test_import_sets_the_scheduler_flag_also_after_jax():
 # ---------------------------------------------------------------------- reference settings
 def test_reference_module_imports_only_from_below():
     """_reference is domain code: it builds on the controllers, filters and the drive, never
-    on the edges (plots, cli) or the analyses."""
+    on the edges (plots, cli) or the analyses; ``_checks`` (argument validation) is below all."""
     tree = ast.parse(REFERENCE_PATH.read_text())
-    allowed = {"_controllers", "_servo", "_blocks", "_drive", "_filters", "_statespace"}
+    allowed = {"_controllers", "_servo", "_blocks", "_drive", "_filters", "_statespace",
+               "_checks"}
     for node in ast.walk(tree):
         if isinstance(node, ast.ImportFrom) and node.level > 0:
             assert (node.module or "").split(".")[0] in allowed, node.module
