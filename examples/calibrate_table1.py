@@ -17,7 +17,7 @@ The bounds matter more than the optimiser: with a 100 N·m/rad "belt" coupling a
 pitch inertia (implausible) an earlier fit met 13 of 15 targets; inside these bounds the best fit
 meets 11 (see the README, "Calibration to Table 1", for the shortfall and why).
 
-Run: ``python examples/calibrate_table1.py`` (≈ 1.5–3 min on 2 CPU cores).  Point
+Run: ``python examples/calibrate_table1.py`` (≈ 30 s on 2 CPU cores).  Point
 ``fdjax.update_model`` at your own ``fdjax.ModalData`` to update a model of your drive.
 """
 

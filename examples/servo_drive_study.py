@@ -16,13 +16,15 @@ The drive's parameters, each with its unit, plausible range and reason, are
 ``fdjax.REFERENCE_PARAMETERS``.
 
 Run: ``python examples/servo_drive_study.py`` (≈ 1 min on 2 CPU cores; ``--quick`` skips the
-re-tuning).
+re-tuning; the figure goes to ``build/headroom_over_travel.png``, or ``--out
+docs/figures/headroom_over_travel.png`` for the README's).
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+import os
 import time
 
 import numpy as np
@@ -154,6 +156,7 @@ def plot(positions, fixed, pid, retuned, out):
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
+    os.makedirs(os.path.dirname(out) or ".", exist_ok=True)
     fig.savefig(out, dpi=110)
     print(f"written {out}")
 
@@ -161,7 +164,8 @@ def plot(positions, fixed, pid, retuned, out):
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="skip the re-tuning")
-    ap.add_argument("--out", default="docs/figures/headroom_over_travel.png",
-                    help="where to write the figure")
+    ap.add_argument("--out", default="build/headroom_over_travel.png",
+                    help="where to write the figure (the README's: "
+                         "docs/figures/headroom_over_travel.png)")
     a = ap.parse_args()
     main(a.quick, a.out)
