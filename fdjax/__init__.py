@@ -209,8 +209,29 @@ def __getattr__(name: str):
 
     jax.config.update("jax_enable_x64", True)  # also when JAX was imported in between
     value = getattr(importlib.import_module(module, __name__), name)
+    _with_notes(value)
     globals()[name] = value
     return value
+
+
+def _with_notes(value) -> None:
+    """A public name whose docstring leans on its private module's docstring (the equations
+    and conventions a module's names share) gets that text appended, so that ``help()`` on
+    the public name shows it."""
+    doc = getattr(value, "__doc__", None)
+    mod = sys.modules.get(getattr(value, "__module__", None) or "")
+    if not (callable(value) and doc and "module docstring" in doc and mod and mod.__doc__):
+        return
+    import inspect
+    import textwrap
+
+    notes = textwrap.indent(inspect.cleandoc(mod.__doc__), "    ")
+    try:
+        value.__doc__ = (doc.replace("the module docstring", "the notes below")
+                         .replace("module docstring", "notes below")
+                         + f"\n\n    Notes (``{value.__module__}``):\n\n{notes}\n")
+    except (AttributeError, TypeError):  # a docstring that cannot be set: leave it
+        pass
 
 
 def __dir__():

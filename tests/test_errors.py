@@ -145,3 +145,31 @@ def test_position_in_millimetres_says_so():
         fdjax.tune_local(par, obj, drive, [250.0, 400.0], ref)
     with pytest.raises(ValueError, match=r"got 900 at index 0$"):  # 0.9 m: outside in m and mm
         drive.frf([900.0], FREQ)
+
+
+def test_a_position_that_is_not_a_number_is_named():
+    drive = fdjax.reference_drive()
+    for bad in ("0.4", ["a", "b"], None):
+        with pytest.raises(TypeError, match=r"`BallScrewDrive\.frf\(position_m=\.\.\.\)` must be a "
+                                            r"number or an array of numbers, got"):
+            drive.frf(bad, np.array([10.0, 20.0]))
+    with pytest.raises(TypeError, match=r"`check_stability\(position_m=\.\.\.\)` must be a number"):
+        fdjax.check_stability(fdjax.DoubleLoop(), drive, position_m="0.4")
+
+
+def test_public_docstrings_carry_their_module_notes():
+    """Every public name has a docstring; one that refers to its module's docstring (the
+    equations its module's names share) shows that text in help() too."""
+    import sys
+
+    for name in fdjax.__all__:
+        value = getattr(fdjax, name)
+        if not callable(value):
+            continue
+        doc = value.__doc__ or ""
+        assert doc.strip(), name
+        assert "module docstring" not in doc, name
+        if "notes below" in doc:
+            first = sys.modules[value.__module__].__doc__.strip().splitlines()[0]
+            assert first.strip() in doc, name
+    assert "J(controller, Y) = e_rms / e_ref" in fdjax.Objective.__doc__

@@ -399,7 +399,7 @@ def stabilisation_diagram(
     *stable* when the previous order has one within ``freq_tol`` (relative frequency) and
     ``damping_tol`` (relative damping ratio), *physical* when also inside the band with
     :math:`\zeta <` ``max_damping``; modes are clusters of physical poles seen at
-    ``min_orders`` orders or more (see the module docstring of ``fdjax._modal._order``; paper
+    ``min_orders`` orders or more (see the module docstring; paper
     Sec. 3.2, Table 1). ``freq_hz``, ``frf``, ``weights``, ``rigid_body`` and
     ``upper_residual`` are those of :func:`fdjax.identify_modes`. Eager (NumPy): the order is
     a discrete choice on concrete data. ``max_modes`` defaults to 16 pairs (fewer on short
