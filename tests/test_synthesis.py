@@ -173,6 +173,11 @@ def test_certify_is_loop_margins_and_stability_at_each_position():
     assert not bad.ok and not bool(bad.stable[-1])
     assert "NOT certified" in bad.message and "unstable at" in bad.message
     assert bad.worst("modulus_margin")[0] == 0.7
+    # the message's least margins are those of the stable positions (an unstable loop's
+    # margins mean nothing)
+    y_s, v_s = bad.worst("modulus_margin", stable_only=True)
+    assert bool(bad.stable[list(bad.positions_m).index(y_s)])
+    assert f"least modulus margin where stable {v_s:.3g} at {y_s * 1e3:.0f} mm" in bad.message
     with pytest.raises(ValueError, match=r"`certify\(positions_m=\.\.\.\)` must be inside the "
                                          r"travel"):
         fdjax.certify(ref, drive, [115.0])

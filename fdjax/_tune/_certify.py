@@ -15,6 +15,8 @@ MM ≥ MM_min (gain margin in the log sense: a phase crossover 6 dB away in eith
 
 from __future__ import annotations
 
+import math
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -61,15 +63,21 @@ class Certificate(eqx.Module):
         """Every position passes."""
         return bool(np.all(self.passed))
 
-    def worst(self, what: str = "modulus_margin") -> tuple[float, float]:
+    def worst(self, what: str = "modulus_margin", *,
+              stable_only: bool = False) -> tuple[float, float]:
         """(position (m), value) where ``what`` (a margin) is least; an unstable position
-        counts as the least of all."""
-        v = np.asarray(getattr(self, what), float)
-        if what == "gain_margin_db":
-            v = np.abs(v)
-        elif what == "phase_margin_deg":
-            v = np.abs(v)
-        v = np.where(self.stable, v, -np.inf)
+        counts as the least of all, or with ``stable_only`` is left out (the margins of an
+        unstable loop mean nothing; NaN where no position is stable)."""
+        if what not in ("gain_margin_db", "phase_margin_deg", "modulus_margin"):
+            raise ValueError("`Certificate.worst(what=...)` must be 'gain_margin_db', "
+                             f"'phase_margin_deg' or 'modulus_margin', got {what!r}")
+        v = np.abs(np.asarray(getattr(self, what), float))
+        if stable_only:
+            if not np.any(self.stable):
+                return math.nan, math.nan
+            v = np.where(self.stable, v, np.inf)
+        else:
+            v = np.where(self.stable, v, -np.inf)
         k = int(np.argmin(v))
         return float(self.positions_m[k]), float(np.asarray(getattr(self, what))[k])
 
@@ -86,11 +94,14 @@ class Certificate(eqx.Module):
             bad = self.positions_m[~self.stable]
             parts.append(f"unstable at {bad.size} positions, first {bad[0] * 1e3:.0f} mm, last "
                          f"{bad[-1] * 1e3:.0f} mm")
+        if not np.any(self.stable):
+            return "; ".join(parts)
+        where = "" if np.all(self.stable) else " where stable"
         for what, label, unit, req in (("gain_margin_db", "gain margin", " dB", gm),
                                        ("phase_margin_deg", "phase margin", "°", pm),
                                        ("modulus_margin", "modulus margin", "", mm)):
-            y, v = self.worst(what)
-            parts.append(f"least {label} {v:.3g}{unit} at {y * 1e3:.0f} mm "
+            y, v = self.worst(what, stable_only=True)
+            parts.append(f"least {label}{where} {v:.3g}{unit} at {y * 1e3:.0f} mm "
                          f"(required {req:g}{unit})")
         return "; ".join(parts)
 
