@@ -198,9 +198,14 @@ __all__ = sorted(_WHERE)
 
 def __getattr__(name: str):
     module = _WHERE.get(name)
+    if name == "plots":  # the figures' submodule: `fdjax.plots` after a bare `import fdjax`
+        return importlib.import_module(".plots", __name__)
     if module is None and name.startswith("_") and not name.startswith("__"):
         try:  # a private submodule, for introspection and tests
-            return importlib.import_module("." + name, __name__)
+            import jax
+
+            with jax.ensure_compile_time_eval():
+                return importlib.import_module("." + name, __name__)
         except ModuleNotFoundError:
             pass
     if module is None:
@@ -208,7 +213,11 @@ def __getattr__(name: str):
     import jax
 
     jax.config.update("jax_enable_x64", True)  # also when JAX was imported in between
-    value = getattr(importlib.import_module(module, __name__), name)
+    # the first use may come inside a user's jit trace: the module-level constants that the
+    # import builds (default arguments such as Servo()) must be concrete arrays, not tracers
+    # of that trace (which leak into the next one)
+    with jax.ensure_compile_time_eval():
+        value = getattr(importlib.import_module(module, __name__), name)
     _with_notes(value)
     globals()[name] = value
     return value

@@ -542,9 +542,15 @@ def gain_headroom(
         raise ValueError(f"`{fn}(max_gain=...)` must be a number > 1, got {max_gain!r}")
     if not (isinstance(rtol, (int, float)) and 0 < rtol <= 0.1):
         raise ValueError(f"`{fn}(rtol=...)` must be a number in (0, 0.1], got {rtol!r}")
+    _check_controller(controller, fn)
     _check_servo(servo, fn)
-    if position_m is not None and isinstance(plant, BallScrewDrive):
+    _check_method(method, fn)
+    if isinstance(plant, BallScrewDrive):
+        if position_m is None:
+            raise ValueError(f"`{fn}(position_m=...)` is required when the plant is a drive")
         position_m = np.asarray(plant._check_travel(position_m, fn))  # named for the caller
+        # the twin's modes counted once, not at every step of the search
+        twin = _twin_options(twin, fn).resolve(plant, fn)
     pos = None if position_m is None else np.asarray(position_m, np.float64)
     k_m = servo.k_motor
 

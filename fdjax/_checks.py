@@ -70,7 +70,7 @@ def inside(value, lo: float, hi: float, where: str, what: str = "the travel"):
     """Table positions (m) inside ``what`` = [lo, hi], checked by :func:`check`.  A concrete
     value that misses the range but lies inside it once divided by 1000 was given in
     millimetres: the message says so, with the value in metres."""
-    numeric(value, where)  # a string or another object that is not numbers: a TypeError
+    _numbers(value, where)  # a string or another object that is not numbers: a TypeError
     ok = lambda p: (p >= lo) & (p <= hi)  # noqa: E731  (NaN fails both comparisons)
     try:
         return check(value, ok, where, f"inside {what} [{lo:.6g}, {hi:.6g}] m")
@@ -113,12 +113,14 @@ def _isfinite(v):
 
 
 def frequency_grid(freq_hz, where: str = "frf(freq_hz=...)"):
-    """Validate a frequency grid in Hz: 1-D, finite, positive and strictly increasing."""
-    freq_hz = jnp.asarray(freq_hz)
+    """Validate a frequency grid in Hz: 1-D, not empty, finite, positive and strictly
+    increasing."""
+    freq_hz = numeric(freq_hz, where)
     if freq_hz.ndim == 0:
         freq_hz = freq_hz[None]
-    if freq_hz.ndim != 1:
-        raise ValueError(f"`{where}` must be a 1-D grid, got shape {freq_hz.shape}")
+    if freq_hz.ndim != 1 or freq_hz.shape[0] == 0:
+        raise ValueError(f"`{where}` must be a 1-D grid of at least one frequency, got shape "
+                         f"{freq_hz.shape}")
     if jnp.issubdtype(freq_hz.dtype, jnp.complexfloating):
         raise ValueError(f"`{where}` must be real, got dtype {freq_hz.dtype}")
     freq_hz = freq_hz.astype(jnp.float64)
@@ -196,9 +198,10 @@ def to_complex(x) -> jax.Array:
     return jnp.asarray(x).astype(jnp.complex128)
 
 
-def numeric(value, where: str) -> jax.Array:
-    """``value`` as a JAX array of numbers: a string, a list of strings or another object
-    that is not numbers is a ``TypeError`` naming ``where`` (not JAX's own message)."""
+def _numbers(value, where: str):
+    """``value`` as an array of numbers, a NumPy one unless it is a JAX array already: a
+    string, a list of strings or another object that is not numbers is a ``TypeError`` naming
+    ``where`` (not JAX's or NumPy's own message)."""
     if isinstance(value, jax.Array):
         return value
     try:
@@ -212,7 +215,12 @@ def numeric(value, where: str) -> jax.Array:
         text = repr(value)
         text = text if len(text) <= 60 else text[:57] + "..."
         raise TypeError(f"`{where}` must be a number or an array of numbers, got {text}")
-    return jnp.asarray(arr)
+    return arr
+
+
+def numeric(value, where: str) -> jax.Array:
+    """``value`` as a JAX array of numbers (:func:`_numbers` checks what it is)."""
+    return jnp.asarray(_numbers(value, where))
 
 
 def real_array(value, where: str) -> jax.Array:
@@ -243,7 +251,9 @@ def concrete_float(value, where: str) -> float:
             f"`{where}` must be a concrete number (it fixes the structure of what is built), "
             "got a traced value; call it outside jit/vmap/grad"
         )
-    arr = np.asarray(value)
+    if isinstance(value, str | bytes):
+        raise TypeError(f"`{where}` must be a number, got {value!r}")
+    arr = np.asarray(_numbers(value, where))
     if not np.isrealobj(arr):
         raise ValueError(f"`{where}` must be real, got dtype {arr.dtype}")
     if arr.shape != ():

@@ -48,6 +48,17 @@ class LTI(eqx.Module):
     dt: Float[Array, ""] | None = None
     position_m: Float[Array, ""] | None = None
 
+    def __check_init__(self):
+        # trailing dimensions (a batch of systems may lead); shapes are static under jit
+        shapes = [getattr(getattr(self, k), "shape", None) for k in "ABCD"]
+        ok = all(sh is not None and len(sh) >= 2 for sh in shapes)
+        if ok:
+            (a0, a1), (b0, b1), (c0, c1), (d0, d1) = (sh[-2:] for sh in shapes)
+            ok = a0 == a1 == b0 == c1 and c0 == d0 and b1 == d1
+        if not ok:
+            raise ValueError("`LTI(A=..., B=..., C=..., D=...)` must have shapes (n, n), "
+                             f"(n, m), (p, n), (p, m), got {', '.join(map(str, shapes))}")
+
     @property
     def n_states(self) -> int:
         return self.A.shape[-1]

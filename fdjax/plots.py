@@ -138,7 +138,12 @@ def plot_frf_family(position_m, freq_hz, H):
         freq_hz: frequency grid (Hz), shape (n_freq,).
         H: ``drive.frf(position_m, freq_hz)``, shape (n_pos, n_freq, 3, 2).
     """
-    pos, f, H = np.asarray(position_m), np.asarray(freq_hz), np.asarray(H)
+    pos, f, H = np.atleast_1d(np.asarray(position_m, float)), np.asarray(freq_hz), np.asarray(H)
+    if H.ndim == 3:  # one position: drive.frf(0.3, f)[0]
+        H = H[None]
+    if H.shape != (pos.size, f.size, 3, 2):
+        raise ValueError(f"`plot_frf_family(H=...)` must have shape (n_pos, n_freq, 3, 2) = "
+                         f"({pos.size}, {f.size}, 3, 2), got {H.shape}")
     fig, axes = plt.subplots(3, 2, figsize=(11, 10), sharex=True)
     colors = plt.cm.viridis(np.linspace(0, 1, pos.size))
     for i, out in enumerate(OUTPUTS):
@@ -174,11 +179,16 @@ def plot_frf_cloud(
         accelerance: multiply by ω² before plotting.
         decades: colour range below the maximum, in decades.
     """
-    pos, f, a = np.asarray(position_m), np.asarray(freq_hz), np.abs(np.asarray(h))
+    pos, f = np.atleast_1d(np.asarray(position_m, float)), np.asarray(freq_hz, float)
+    a = np.abs(np.asarray(h)).reshape(pos.size, f.size)
     if accelerance:
         a = a * (2 * np.pi * f[None, :]) ** 2
+    top = np.nanmax(a) if np.any(np.isfinite(a)) else np.nan
+    if not (np.isfinite(top) and top > 0):
+        raise ValueError("`plot_frf_cloud(h=...)` must have a finite, non-zero entry to scale "
+                         "the colours by")
     fig, ax = plt.subplots(figsize=(9, 5))
-    norm = LogNorm(vmin=a.max() * 10.0**-decades, vmax=a.max())
+    norm = LogNorm(vmin=top * 10.0**-decades, vmax=top)
     mesh = ax.pcolormesh(f, pos * 1e3, a, norm=norm, shading="auto", cmap="magma")
     ax.set_xscale("log")
     ax.set_xlabel("frequency (Hz)")
@@ -198,16 +208,22 @@ def plot_resonant_phase(position_m, frequency_hz, phase_deg, *, title="h21 = x2/
             second panel showing how each mode's frequency moves.
         phase_deg: tracked resonant phases (n_pos, n_modes), degrees in (−360, 0].
     """
-    pos = np.asarray(position_m) * 1e3
-    f, ph = np.asarray(frequency_hz), np.asarray(phase_deg)
-    # phases are defined modulo 360°: unwrap along the position so curves do not jump
-    ph = np.unwrap(ph, period=360.0, axis=0)
+    pos = np.atleast_1d(np.asarray(position_m, float)) * 1e3
+    f = np.asarray(frequency_hz, float).reshape(pos.size, -1)
+    ph = np.array(phase_deg, float).reshape(pos.size, -1)
+    if not np.any(np.isfinite(ph)):
+        raise ValueError("`plot_resonant_phase(phase_deg=...)` has no finite phase to plot")
+    # phases are defined modulo 360°: unwrap along the position so curves do not jump (each
+    # mode over the positions where it was found; NaN marks a mode missing there)
+    for k in range(ph.shape[1]):
+        ok = np.isfinite(ph[:, k])
+        ph[ok, k] = np.unwrap(ph[ok, k], period=360.0)
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 4.8))
     for k in range(f.shape[1]):
-        label = f"mode {k + 1} ({np.median(f[:, k]):.0f} Hz)"
+        label = f"mode {k + 1} ({np.nanmedian(f[:, k]):.0f} Hz)"
         ax1.plot(pos, ph[:, k], "o-", ms=3, label=label)
         ax2.semilogy(pos, f[:, k], "o-", ms=3, label=label)
-    lo, hi = 45 * np.floor(ph.min() / 45), 45 * np.ceil(ph.max() / 45)
+    lo, hi = 45 * np.floor(np.nanmin(ph) / 45), 45 * np.ceil(np.nanmax(ph) / 45)
     ax1.set_ylim(lo - 10, hi + 10)
     ax1.set_yticks(np.arange(lo, hi + 1, 45))
     for ref in np.arange(-90 - 360 * 2, hi + 1, 180):
@@ -327,6 +343,8 @@ def plot_tracking(runs, *, title, tool=False):
         tool: also draw the tool-point error.
     """
     n = len(runs)
+    if n == 0:
+        raise ValueError("`plot_tracking(runs=...)` must hold at least one simulation")
     fig, axes = plt.subplots(1 + n, 1, figsize=(10, 3.2 + 2.3 * n), sharex=True,
                              gridspec_kw=dict(height_ratios=[1.3] + [1.0] * n))
     ax_r = axes[0]
@@ -429,7 +447,12 @@ def plot_rms_over_travel(positions_mm, results, *, labels=None, design_mm=(),
     fig, (ax, ax_m) = plt.subplots(2, 1, figsize=(10, 7.5), sharex=True,
                                    gridspec_kw=dict(height_ratios=[2.0, 1.0]))
     colors = plt.cm.tab10(np.arange(len(results)))
-    top = max(np.nanmax(np.asarray(r["rms_error_um"], float)) for r in results.values())
+    if not results:
+        raise ValueError("`plot_rms_over_travel(results=...)` must hold at least one controller")
+    values = np.concatenate([np.asarray([np.nan if v is None else v for v in r["rms_error_um"]],
+                                        float) for r in results.values()])
+    # every position unstable: no error to scale by, the × marks alone
+    top = float(np.nanmax(values)) if np.any(np.isfinite(values)) else 1.0
     for (name, r), c in zip(results.items(), colors):
         label = (labels or {}).get(name, name)
         rms = np.asarray([np.nan if v is None else v for v in r["rms_error_um"]], float)

@@ -173,3 +173,102 @@ def test_public_docstrings_carry_their_module_notes():
             first = sys.modules[value.__module__].__doc__.strip().splitlines()[0]
             assert first.strip() in doc, name
     assert "J(controller, Y) = e_rms / e_ref" in fdjax.Objective.__doc__
+
+
+def test_more_inputs_are_named_before_any_work():
+    """Each of these used to reach JAX, NumPy or diffrax and fail there (or run on)."""
+    import dataclasses
+
+    drive = fdjax.reference_drive()
+    loop = fdjax.DoubleLoop()
+    ref = fdjax.reciprocating(stroke=1e-3, v_max=0.05, a_max=2.0, j_max=400.0, cycles=1)
+    n = int(round(ref.duration / 1.25e-4)) + 1
+    cases = [
+        (lambda: dataclasses.replace(drive, travel_m=(0.1, 0.7, 0.9)),
+         r"`BallScrewDrive\(travel_m=\.\.\.\)` must be a \(min, max\) pair of numbers in m"),
+        (lambda: dataclasses.replace(drive, travel_m=(100.0, 700.0)),
+         r"table positions are in metres: 700 mm is 0\.7 m"),
+        (lambda: fdjax.simulate(loop, drive, ref, position_m=0.3, moving="no"),
+         r"`simulate\(moving=\.\.\.\)` must be a bool"),
+        (lambda: fdjax.simulate(loop, drive, ref, position_m=0.3, disturbance=np.full(n, np.nan)),
+         r"`simulate\(disturbance=\.\.\.\)` must be finite"),
+        (lambda: fdjax.simulate(loop, drive, ref, fdjax.PadeODE(), position_m=0.3,
+                                duration=1e-6),
+         r"`simulate\(duration=\.\.\.\)` must span at least one output period of PadeODE"),
+        (lambda: fdjax.gain_headroom(loop, drive),
+         r"`gain_headroom\(position_m=\.\.\.\)` is required"),
+        (lambda: fdjax.DiscreteFilter([[1.0, 0.0, 0.0, 0.0, 0.0, 0.0]], np.zeros((0, 6)), 1e-4),
+         r"`DiscreteFilter\(parallel_sos=\.\.\.\)` must hold finite rows .* a0 ≠ 0"),
+        (lambda: fdjax.LTI(np.eye(2), np.ones((3, 1)), np.ones((1, 2)), np.zeros((1, 1))),
+         r"`LTI\(A=\.\.\., B=\.\.\., C=\.\.\., D=\.\.\.\)` must have shapes"),
+        (lambda: drive.frf(0.3, []), r"must be a 1-D grid of at least one frequency"),
+        (lambda: fdjax.jerk_limited("0.3", 0.1, 1.0, 100.0),
+         r"`jerk_limited\(distance=\.\.\.\)` must be a number, got '0\.3'"),
+    ]
+    for call, match in cases:
+        with pytest.raises((ValueError, TypeError), match=match):
+            call()
+    with pytest.raises(TypeError, match=r"`gain_headroom\(controller=\.\.\.\)` must be"):
+        fdjax.gain_headroom("x", drive, position_m=0.3)
+    # travel given as an array is kept as the pair of floats a static field needs
+    again = dataclasses.replace(drive, travel_m=np.array([0.1, 0.7]))
+    assert again.travel_m == (0.1, 0.7) and type(again.travel_m[0]) is float
+    # a channel of zeros has nothing to fit
+    f = np.geomspace(20.0, 3000.0, 200)
+    H = np.array(drive.frf(0.3, f))[0]
+    H[:, 2, 1] = 0.0
+    with pytest.raises(ValueError, match=r"`identify_modes\(frf=\.\.\.\)` must not have a channel "
+                                         r"that is zero at every frequency, got one at channel 5"):
+        fdjax.identify_modes(f, H, n_modes=4)
+
+
+def test_figures_take_one_position_and_missing_values():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from fdjax import plots
+
+    drive = fdjax.reference_drive()
+    f = np.geomspace(20.0, 3000.0, 100)
+    H = np.asarray(drive.frf(0.4, f))
+    plots.plot_frf_family(0.4, f, H[0])
+    h = H[:, :, 1, 0].copy()
+    h[0, 3] = np.nan
+    plots.plot_frf_cloud(0.4, f, h)
+    plots.plot_resonant_phase([0.1, 0.2, 0.3], np.array([[50, 100], [51, np.nan], [52, 101.0]]),
+                              np.array([[-100, -200], [-110, np.nan], [-120, -190.0]]))
+    plots.plot_rms_over_travel([100, 200], {"a": {"rms_error_um": [None, None],
+                                                  "stable": [False, False],
+                                                  "modulus_margin": [0.1, 0.2]}})
+    with pytest.raises(ValueError, match=r"`plot_tracking\(runs=\.\.\.\)` must hold at least one"):
+        plots.plot_tracking({}, title="none")
+    plt.close("all")
+
+
+def test_first_use_inside_a_users_jit_leaks_no_tracer():
+    """fdjax loads its modules on first use; when that use is inside a jitted function, the
+    module's constants (the default Servo()) were built as tracers of that trace, and the
+    next trace failed with an UnexpectedTracerError.  A fresh process, as a user's."""
+    import subprocess
+    import sys
+
+    script = (
+        "import numpy as np, equinox as eqx, jax.numpy as jnp, fdjax\n"
+        "f = np.geomspace(5, 3900, 64)\n"
+        "@eqx.filter_jit\n"
+        "def gm(c, d, p):\n"
+        "    return fdjax.loop_margins(c, d, f, position_m=p,\n"
+        "        twin=fdjax.TwinOptions(kept_modes=7)).speed.gain_margin_db\n"
+        "d, c = fdjax.reference_drive(), fdjax.DoubleLoop()\n"
+        "a, b = gm(c, d, 0.3), gm(c, d, 0.2)\n"
+        "v = gm(c, d, jnp.array([0.2, 0.3]))\n"
+        "print(float(a), float(b), [float(x) for x in v])\n"
+    )
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                         timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    a, b, *v = (float(x) for x in out.stdout.replace("[", "").replace("]", "").replace(",", " ")
+                .split())
+    np.testing.assert_allclose(v, [b, a], rtol=1e-12)

@@ -300,7 +300,10 @@ class PIDLoop(AbstractController):
 
     Units (u is a current command, A): k_p in A/m, k_i in A/(m·s), k_d in A·s/m, the derivative
     filter corner ω_d in rad/s, k_ffv in A·s/m, k_ffa in A·s²/m.  Gains stored as logarithms
-    (``log_kp``, ``log_ki``, ``log_kd``, ``log_wd``; the physical values are properties).
+    (``log_kp``, ``log_ki``, ``log_kd``, ``log_wd``; the physical values are properties), so
+    each is positive: a PI or PD position loop is a controller of its own, a subclass of
+    :class:`fdjax.AbstractController` whose law is a :class:`fdjax.Path` through
+    :class:`fdjax.PID` or :class:`fdjax.PI` blocks (which take zero gains).
 
     Defaults: hand-set for :func:`fdjax.reference_drive` and the reference servo: stable at
     every table position 0.1–0.7 m with 16.6–22.2 dB of gain margin, soft

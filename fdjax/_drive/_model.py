@@ -40,6 +40,17 @@ INPUTS = ("T1", "F3")
 """Input coordinates of H_M: motor torque (N·m), disturbance force at the tool point (N)."""
 
 
+def _travel(value) -> tuple[float, float]:
+    """``travel_m`` as a pair of Python floats (a static field: hashable, compared by value)."""
+    where = "BallScrewDrive(travel_m=...)"
+    try:
+        lo, hi = (_checks.concrete_float(v, where) for v in value)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"`{where}` must be a (min, max) pair of numbers in m, got "
+                         f"{value!r}") from err
+    return (lo, hi)
+
+
 class BallScrewDrive(eqx.Module):
     """A ball-screw feed drive with position-dependent dynamics (paper Figs. 6–9).
 
@@ -64,7 +75,8 @@ class BallScrewDrive(eqx.Module):
     carriage: Carriage
     nut: NutJoint
     nut_offset: Float[Array, ""] = _checks.finite_field("BallScrewDrive(nut_offset=...)")
-    travel_m: tuple[float, float] = eqx.field(static=True, default=(0.1, 0.7))
+    travel_m: tuple[float, float] = eqx.field(static=True, default=(0.1, 0.7),
+                                              converter=lambda v: _travel(v))
 
     def __check_init__(self):
         lo, hi = self.travel_m
@@ -72,6 +84,12 @@ class BallScrewDrive(eqx.Module):
             raise ValueError(
                 f"`BallScrewDrive(travel_m=...)` must be an increasing (min, max) pair, "
                 f"got {self.travel_m}"
+            )
+        if hi > 20.0:  # no ball screw is that long: a travel given in millimetres
+            raise ValueError(
+                f"`BallScrewDrive(travel_m=...)` must be a (min, max) pair in m, got "
+                f"{self.travel_m}; table positions are in metres: {hi:.6g} mm is "
+                f"{hi * 1e-3:.6g} m"
             )
         if _checks.is_concrete(self.nut_offset) and _checks.is_concrete(self.screw.length):
             l0, L = float(self.nut_offset), float(self.screw.length)

@@ -580,8 +580,11 @@ def _count_modes(drive, band_hz, n: int, n_positions: int, nut_correction: bool,
             f"inside jit/grad/vmap over the drive {hint}"
         )
     lo, hi = drive.travel_m
-    positions = drive._check_travel(jnp.linspace(lo, hi, n_positions), fn)
-    f = _natural_freqs(drive, positions, n, nut_correction)
+    # a concrete drive inside a `jax.jit` trace (the drive closed over, the position traced):
+    # the count is computed now, as outside, not staged into the trace
+    with jax.ensure_compile_time_eval():
+        positions = drive._check_travel(jnp.linspace(lo, hi, n_positions), fn)
+        f = _natural_freqs(drive, positions, n, nut_correction)
     if not _checks.is_concrete(f):
         raise ValueError(f"`{fn}(...)` cannot count modes inside `jax.jit`: {hint}")
     counts = np.sum(np.asarray(f) <= band, axis=-1)

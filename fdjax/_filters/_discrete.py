@@ -338,6 +338,12 @@ class DiscreteFilter(eqx.Module):
         par = _sos_array(parallel_sos, "DiscreteFilter(parallel_sos=...)")
         ser = _sos_array(series_sos, "DiscreteFilter(series_sos=...)", stages=True)
         self.dt = positive(real_scalar(dt, "DiscreteFilter(dt=...)"), "DiscreteFilter(dt=...)")
+        for rows, name in ((par, "parallel_sos"), (ser, "series_sos")):
+            if is_concrete(rows):  # built inside jit from a filter's own checked parameters
+                v = np.asarray(rows)
+                if not np.all(np.isfinite(v)) or np.any(v[..., 3] == 0):
+                    raise ValueError(f"`DiscreteFilter({name}=...)` must hold finite rows "
+                                     f"[b0, b1, b2, a0, a1, a2] with a0 ≠ 0")
         self.parallel_sos = par / par[:, 3:4]
         self.series_sos = ser / ser[..., 3:4]
 

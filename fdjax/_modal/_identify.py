@@ -25,7 +25,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import ArrayLike, Complex, Float
 
-from .._checks import finite, frequency_grid, positive, static_int, to_complex
+from .._checks import finite, frequency_grid, is_concrete, numeric, positive, static_int, to_complex
 from .._sweep import map_positions
 from ._fit import _TWO_PI, ModalFit, _wrap_phase_deg
 from ._linear import _cplx, _linear_fit, _real_residues
@@ -315,7 +315,7 @@ def _check_inputs(where, n_batch, freq_hz, frf, n_modes, rigid_body, upper_resid
     """Shared validation of identify_modes(_batched); ``n_batch`` leading position axes."""
     freq_hz = frequency_grid(freq_hz, f"{where}(freq_hz=...)")
     n_freq = freq_hz.shape[0]
-    frf = jnp.asarray(frf)
+    frf = numeric(frf, f"{where}(frf=...)")
     if not jnp.issubdtype(frf.dtype, jnp.complexfloating):
         raise ValueError(
             f"`{where}(frf=...)` must be a complex FRF (H, not |H|), got dtype {frf.dtype}"
@@ -329,6 +329,15 @@ def _check_inputs(where, n_batch, freq_hz, frf, n_modes, rigid_body, upper_resid
         )
     frf = frf.astype(jnp.complex128)
     frf = finite(frf, f"{where}(frf=...)")
+    # a channel that is zero at every frequency has nothing to fit (and no scale)
+    if is_concrete(frf):
+        flat = np.abs(np.asarray(frf)).reshape(frf.shape[:n_batch + 1] + (-1,))
+        dead = np.all(flat == 0, axis=n_batch)
+        if np.any(dead):
+            idx = tuple(int(i) for i in np.argwhere(dead)[0])
+            at = f"(position, channel) {idx}" if n_batch else f"channel {idx[0]}"
+            raise ValueError(f"`{where}(frf=...)` must not have a channel that is zero at every "
+                             f"frequency, got one at {at} (flattened output × input index)")
     rigid_body = static_int(rigid_body, f"{where}(rigid_body=...)", 0, 2)
     if not isinstance(upper_residual, bool):
         raise ValueError(f"`{where}(upper_residual=...)` must be a bool, got {upper_residual!r}")
@@ -438,6 +447,9 @@ def identify_modes_batched(
         "identify_modes_batched", 1, freq_hz, frf, n_modes, rigid_body, upper_residual,
         weights, initial, vf_iterations, vf_extra_modes, max_steps, real_poles,
     )
+    if frf.shape[0] == 0:
+        raise ValueError("`identify_modes_batched(frf=...)` must hold at least one position, "
+                         f"got shape {frf.shape}")
     batch_size = static_int(batch_size, "identify_modes_batched(batch_size=...)", 1)
     rigid_body, upper_residual, vf_iterations, vf_extra_modes, max_steps, real_poles = static
     options = dict(

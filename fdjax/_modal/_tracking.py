@@ -21,10 +21,9 @@ import itertools
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array
 
-from .._checks import is_concrete
+from .._checks import positive, real_scalar
 from ._fit import ModalFit
 
 
@@ -120,9 +119,10 @@ def track_modes(
             "`track_modes(fits=...)` must be a batch over positions with frequency_hz of "
             f"shape (n_positions, n_modes), got shape {fits.frequency_hz.shape}"
         )
-    for name, value in (("freq_tol", freq_tol), ("mac_tol", mac_tol)):
-        if is_concrete(value) and not (np.isfinite(value) and value > 0):
-            raise ValueError(f"`track_modes({name}=...)` must be finite and positive, got {value}")
+    # arrays, not Python floats: a new tolerance runs the program compiled for the first
+    freq_tol, mac_tol = (positive(real_scalar(v, f"track_modes({name}=...)"),
+                                  f"track_modes({name}=...)")
+                         for name, v in (("freq_tol", freq_tol), ("mac_tol", mac_tol)))
     n_pos, n = fits.frequency_hz.shape
     shapes = fits.residues.reshape(n_pos, n, -1)
     perm = _track(fits.frequency_hz, shapes, freq_tol, mac_tol, bool(extrapolate))

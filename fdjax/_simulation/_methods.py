@@ -131,7 +131,19 @@ class SampledData(AbstractLoopModel):
     def sharing(self, controller, plant, servo) -> SampledData:
         """This model holding the discretisation of ``controller`` around ``plant``: its closed
         loop and its open loops (a simulation and the margins of one design) then share one
-        discrete law and one matrix exponential.  Only for that controller and plant."""
+        discrete law and one matrix exponential.  Only for that controller and plant: the
+        twin at one position (:func:`fdjax.state_space`), not the drive."""
+        from .._checks import instance
+        from .._control._controllers import AbstractController
+        from .._control._servo import Servo
+        from .._drive._twin import StateSpace
+
+        instance(controller, AbstractController, "SampledData.sharing(controller=...)",
+                 "an fdjax controller")
+        instance(plant, StateSpace, "SampledData.sharing(plant=...)",
+                 "an fdjax.StateSpace (the twin at one position: fdjax.state_space(drive, "
+                 "position_m))")
+        instance(servo, Servo, "SampledData.sharing(servo=...)")
         return eqx.tree_at(lambda m: m.shared, self, self.parts(controller, plant, servo),
                            is_leaf=lambda x: x is None)
 

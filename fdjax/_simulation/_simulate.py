@@ -29,7 +29,7 @@ from .._control._servo import Servo
 from .._drive._model import BallScrewDrive
 from .._drive._twin import StateSpace, TwinOptions, _twin_options, state_space
 from .._results import RESULTS
-from ._methods import AbstractLoopModel, SampledData
+from ._methods import AbstractLoopModel, PadeODE, SampledData
 from ._moving import MovingPlant
 
 __all__ = ["Simulation", "simulate", "SIMULATION_OUTPUTS"]
@@ -203,12 +203,18 @@ def simulate(
             f"`{fn}(duration=...)` must be a concrete number (it sets the number of output "
             "samples)"
         )
-    duration = float(duration)
+    duration = _checks.concrete_float(duration, f"{fn}(duration=...)")
     if not (math.isfinite(duration) and duration > 0):
         raise ValueError(f"`{fn}(duration=...)` must be positive, got {duration:.6g}")
-    eb = _checks.positive(jnp.asarray(error_bound, jnp.float64), f"{fn}(error_bound=...)")
+    eb = _checks.positive(_checks.real_scalar(error_bound, f"{fn}(error_bound=...)"),
+                          f"{fn}(error_bound=...)")
+    moving = _checks.static_bool(moving, f"{fn}(moving=...)")
     dt = method.output_period(servo)
     n = int(round(duration / dt)) + 1
+    if n < 2 and isinstance(method, PadeODE):
+        raise ValueError(f"`{fn}(duration=...)` must span at least one output period of "
+                         f"PadeODE ({dt:.6g} s; the ODE solver needs two output times), got "
+                         f"{duration:.6g} s")
     twin = _twin_options(twin, fn)
     if isinstance(plant, BallScrewDrive):
         if position_m is None:
@@ -233,12 +239,13 @@ def simulate(
     if disturbance is None:
         force = jnp.zeros(n)
     else:
-        force = jnp.asarray(disturbance, jnp.float64)
+        force = _checks.real_array(disturbance, f"{fn}(disturbance=...)")
         if force.shape != (n,):
             raise ValueError(
                 f"`{fn}(disturbance=...)` must have shape ({n},) (one value per "
                 f"output sample), got {force.shape}"
             )
+        force = _checks.finite(force, f"{fn}(disturbance=...)")
     sim = _simulate_jit(
         controller, plant, reference, method, servo, pos0, force, n, bool(moving),
         twin, eb, travel,
@@ -249,7 +256,13 @@ def simulate(
             if bool(np.any(np.asarray(failed))):
                 if bool(np.any(np.asarray(sim.result == RESULTS.out_of_travel))):
                     raise ValueError(f"`{fn}(reference=..., position_m=...)`: {sim.message}")
-                raise RuntimeError(_with_pole(sim, controller, plant, method, servo, pos0, twin))
+                msg = _with_pole(sim, controller, plant, method, servo, pos0, twin)
+                r0 = float(np.asarray(sim.reference).reshape(-1, 3)[0, 0])  # r at t = 0
+                if int(np.atleast_1d(np.asarray(sim.failed_at))[0]) == 0 and r0 != 0.0:
+                    msg += (f"; the reference starts at r(0) = {r0:.6g} m, a step (r is the "
+                            f"displacement from {fn}(position_m=...), where the loop starts at "
+                            "rest)")
+                raise RuntimeError(msg)
         else:
             sim = sim.result.error_if(sim, failed)
     return sim
