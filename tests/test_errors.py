@@ -262,13 +262,12 @@ def test_first_use_inside_a_users_jit_leaks_no_tracer():
         "    return fdjax.loop_margins(c, d, f, position_m=p,\n"
         "        twin=fdjax.TwinOptions(kept_modes=7)).speed.gain_margin_db\n"
         "d, c = fdjax.reference_drive(), fdjax.DoubleLoop()\n"
-        "a, b = gm(c, d, 0.3), gm(c, d, 0.2)\n"
-        "v = gm(c, d, jnp.array([0.2, 0.3]))\n"
-        "print(float(a), float(b), [float(x) for x in v])\n"
+        "a = gm(c, d, 0.3)\n"
+        "v = gm(c, d, jnp.array([0.2, 0.3]))  # a second trace: it failed here\n"
+        "print(float(a), *(float(x) for x in v))\n"
     )
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
                          timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
-    a, b, *v = (float(x) for x in out.stdout.replace("[", "").replace("]", "").replace(",", " ")
-                .split())
-    np.testing.assert_allclose(v, [b, a], rtol=1e-12)
+    a, *v = (float(x) for x in out.stdout.split())
+    assert len(v) == 2 and abs(v[1] - a) <= 1e-12 * abs(a), (a, v)
