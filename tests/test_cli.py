@@ -59,9 +59,9 @@ def test_demo_writes_figures(tmp_path):
     # where it is unstable: from 480 mm sampled, 520 mm continuous (eigenvalues,
     # fdjax.check_stability), so from the 13-position grid's 500 and 550 mm
     assert "  sampled, as the servo runs it: speed loop GM ≥ 12.6 dB, PM ≥ 53.5°" in text
-    assert "; unstable (GM < 0 dB) from 500 mm\n" in text
+    assert "; unstable from 500 mm (eigenvalues)\n" in text
     assert "  continuous, exact delay: speed loop GM ≥ " in text
-    assert "; unstable (GM < 0 dB) from 550 mm\n" in text
+    assert "; gain margin below 0 dB from 550 mm\n" in text
     # summary.json: the numbers the chain produced, consistent with what the tests establish
     s = json.loads((out / "summary.json").read_text())
     assert s["quick"] is True
@@ -301,14 +301,18 @@ def test_loop_line_in_db_and_where_unstable():
     # the sampled position loop of the reference controller (demo): below 1 from 500 mm
     position = [1.862, 1.685, 1.531, 1.397, 1.282, 1.184, 1.101, 1.03, 0.97, 0.918, 0.873,
                 0.834, 0.8]
-    line = cli._loop_line("sampled", _margins([4.25] * 13, position), _GRID_M)
-    assert line == ("sampled: speed loop GM ≥ 12.6 dB, PM ≥ 60.0°; position loop GM ≥ "
-                    "-1.9 dB, PM ≥ -10.2°; unstable (GM < 0 dB) from 500 mm")
+    line = cli._loop_line("continuous", _margins([4.25] * 13, position), _GRID_M)
+    assert line == ("continuous: speed loop GM ≥ 12.6 dB, PM ≥ 60.0°; position loop GM ≥ "
+                    "-1.9 dB, PM ≥ -10.2°; gain margin below 0 dB from 500 mm")
+    # with the eigenvalues' verdict (the sampled loop), that is what names the positions
+    sampled = {**_margins([4.25] * 13, position), "stable": [True] * 7 + [False] * 6}
+    assert cli._loop_line("sampled", sampled, _GRID_M).endswith(
+        "PM ≥ -10.2°; unstable from 450 mm (eigenvalues)")
     assert cli._loop_line("x", _margins([4.25] * 13, [2.0] * 13), _GRID_M) == (
         "x: speed loop GM ≥ 12.6 dB, PM ≥ 60.0°; position loop GM ≥ 6.0 dB, PM ≥ -10.2°")
     speed = [0.5, 0.9] + [2.0] * 4 + [0.99] + [2.0] * 2 + [0.9] * 3 + [2.0]
     assert cli._loop_line("x", _margins(speed, [2.0] * 13), _GRID_M).endswith(
-        "; unstable (GM < 0 dB) up to 150 mm, at 400 mm, at 550–650 mm")
+        "; gain margin below 0 dB up to 150 mm, at 400 mm, at 550–650 mm")
     assert cli._where([True] * 3, [0.1, 0.2, 0.3]) == "at every position"
     assert cli._where([False, True, False], [0.1, 0.2, 0.3]) == "at 200 mm"
 
