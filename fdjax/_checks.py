@@ -66,6 +66,10 @@ def check(
     return eqx.error_if(value, jnp.logical_not(good), f"`{where}` must be {expected}")
 
 
+LONGEST_TRAVEL_M = 20.0
+"""No ball-screw axis is longer: a table position or travel beyond it (m) was given in mm."""
+
+
 def inside(value, lo: float, hi: float, where: str, what: str = "the travel"):
     """Table positions (m) inside ``what`` = [lo, hi], checked by :func:`check`.  A concrete
     value that misses the range but lies inside it once divided by 1000 was given in
@@ -251,8 +255,6 @@ def concrete_float(value, where: str) -> float:
             f"`{where}` must be a concrete number (it fixes the structure of what is built), "
             "got a traced value; call it outside jit/vmap/grad"
         )
-    if isinstance(value, str | bytes):
-        raise TypeError(f"`{where}` must be a number, got {value!r}")
     arr = np.asarray(_numbers(value, where))
     if not np.isrealobj(arr):
         raise ValueError(f"`{where}` must be real, got dtype {arr.dtype}")
@@ -273,14 +275,23 @@ def static_int(value, where: str, lo: int, hi: int | None = None) -> int:
     return value
 
 
+def static_number(value, where: str, ok: Callable = lambda v: True,
+                  expected: str = "a finite number") -> float:
+    """A static setting (a concrete real scalar, not a bool, finite and with ``ok(value)``) as
+    a Python float, for settings that fix what is compiled; otherwise a ``ValueError`` naming
+    ``where`` and ``expected`` (which completes "must be ...")."""
+    try:
+        v = math.nan if isinstance(value, bool | np.bool_) else concrete_float(value, where)
+    except (TypeError, ValueError):
+        v = math.nan
+    if not (math.isfinite(v) and ok(v)):
+        raise ValueError(f"`{where}` must be {expected}, got {value!r}")
+    return v
+
+
 def static_positive(value, where: str) -> float:
-    """A static positive number (a Python/NumPy real, not a bool, finite and > 0) as a Python
-    float: a setting that fixes what is compiled, such as a smooth maximum's sharpness."""
-    ok = isinstance(value, int | float | np.integer | np.floating) and not isinstance(
-        value, bool | np.bool_)
-    if not (ok and math.isfinite(float(value)) and float(value) > 0):
-        raise ValueError(f"`{where}` must be a finite positive number, got {value!r}")
-    return float(value)
+    """A static positive number (:func:`static_number`), e.g. a smooth maximum's sharpness."""
+    return static_number(value, where, lambda v: v > 0, "a finite positive number")
 
 
 def static_bool(value, where: str) -> bool:

@@ -203,7 +203,7 @@ def test_more_inputs_are_named_before_any_work():
          r"`LTI\(A=\.\.\., B=\.\.\., C=\.\.\., D=\.\.\.\)` must have shapes"),
         (lambda: drive.frf(0.3, []), r"must be a 1-D grid of at least one frequency"),
         (lambda: fdjax.jerk_limited("0.3", 0.1, 1.0, 100.0),
-         r"`jerk_limited\(distance=\.\.\.\)` must be a number, got '0\.3'"),
+         r"`jerk_limited\(distance=\.\.\.\)` must be a number or an array of numbers, got '0\.3'"),
     ]
     for call, match in cases:
         with pytest.raises((ValueError, TypeError), match=match):

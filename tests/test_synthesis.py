@@ -219,7 +219,7 @@ def test_python_control_export_is_the_law_the_loop_runs():
     for kw, msg in (({"position_m": 115.0}, r"position_m=\.\.\.\)` must be a finite table position "
                                             r"in metres .*115 mm is 0\.115 m"),
                     ({"position_m": np.nan}, r"position_m=\.\.\.\)` must be a finite"),
-                    ({"position_m": [0.2, 0.3]}, r"position_m=\.\.\.\)` must be a real scalar"),
+                    ({"position_m": [0.2, 0.3]}, r"position_m=\.\.\.\)` must be a scalar"),
                     ({"filter_method": "bogus"}, r"filter_method=\.\.\.\)` must be one of")):
         with pytest.raises(ValueError, match=r"`to_python_control\(" + msg):
             fdjax.to_python_control(ref, **kw)

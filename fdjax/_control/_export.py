@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 
-from .._checks import concrete_float, instance, real_scalar
+from .._checks import LONGEST_TRAVEL_M, concrete_float, instance
 from ._blocks import FILTER_METHODS
 from ._controllers import LAW_SIGNALS, AbstractController
 from ._interconnect import realise_law
@@ -21,8 +21,6 @@ from ._servo import Servo
 
 __all__ = ["to_python_control"]
 
-_MAX_POSITION_M = 20.0
-"""Beyond this a table position (m) was given in millimetres (no machine axis is 20 m long)."""
 
 
 def to_python_control(controller: AbstractController, position_m=None, *,
@@ -42,12 +40,12 @@ def to_python_control(controller: AbstractController, position_m=None, *,
     instance(servo, Servo, f"{fn}(servo=...)")
     if position_m is not None:
         where = f"{fn}(position_m=...)"
-        position_m = float(concrete_float(real_scalar(position_m, where), where))
-        if not (math.isfinite(position_m) and abs(position_m) <= _MAX_POSITION_M):
+        position_m = concrete_float(position_m, where)
+        if not (math.isfinite(position_m) and abs(position_m) <= LONGEST_TRAVEL_M):
             mm = (f"; table positions are in metres: {position_m:.6g} mm is "
                   f"{position_m * 1e-3:.6g} m" if math.isfinite(position_m) else "")
             raise ValueError(f"`{where}` must be a finite table position in metres (at most "
-                             f"{_MAX_POSITION_M:g} m), got {position_m:.6g}{mm}")
+                             f"{LONGEST_TRAVEL_M:g} m), got {position_m:.6g}{mm}")
     try:
         import control
     except ImportError as exc:  # pragma: no cover - depends on the environment

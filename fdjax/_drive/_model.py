@@ -76,7 +76,7 @@ class BallScrewDrive(eqx.Module):
     nut: NutJoint
     nut_offset: Float[Array, ""] = _checks.finite_field("BallScrewDrive(nut_offset=...)")
     travel_m: tuple[float, float] = eqx.field(static=True, default=(0.1, 0.7),
-                                              converter=lambda v: _travel(v))
+                                              converter=_travel)
 
     def __check_init__(self):
         lo, hi = self.travel_m
@@ -85,7 +85,7 @@ class BallScrewDrive(eqx.Module):
                 f"`BallScrewDrive(travel_m=...)` must be an increasing (min, max) pair, "
                 f"got {self.travel_m}"
             )
-        if hi > 20.0:  # no ball screw is that long: a travel given in millimetres
+        if hi > _checks.LONGEST_TRAVEL_M:  # a travel given in millimetres
             raise ValueError(
                 f"`BallScrewDrive(travel_m=...)` must be a (min, max) pair in m, got "
                 f"{self.travel_m}; table positions are in metres: {hi:.6g} mm is "

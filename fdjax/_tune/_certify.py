@@ -24,7 +24,7 @@ import numpy as np
 from jaxtyping import ArrayLike, Float
 
 from .._analysis import check_stability, loop_margins
-from .._checks import instance, real_array
+from .._checks import instance, real_array, static_number
 from .._control._controllers import AbstractController
 from .._control._servo import Servo
 from .._drive._model import BallScrewDrive
@@ -32,6 +32,7 @@ from .._drive._twin import TwinOptions, state_space
 from .._memory import release
 from .._simulation import SampledData, simulate
 from .._trajectory import Trajectory
+from ._penalties import MARGIN_REQUIREMENTS
 from ._schedule import InterpolatedLoop, ScheduledLoop
 
 __all__ = ["Certificate", "certify"]
@@ -214,17 +215,10 @@ def certify(
     instance(controller, AbstractController, f"{fn}(controller=...)", "an fdjax controller")
     instance(drive, BallScrewDrive, f"{fn}(drive=...)")
     instance(servo, Servo, f"{fn}(servo=...)")
-    for name, value, ok, expected in (
-            ("gain_margin_db", gain_margin_db, lambda v: v >= 0, "finite and non-negative (dB)"),
-            ("phase_margin_deg", phase_margin_deg, lambda v: 0 <= v < 180,
-             "in [0, 180) degrees"),
-            ("modulus_margin", modulus_margin, lambda v: 0 < v <= 1, "in (0, 1]")):
-        try:
-            v = float(value)
-        except (TypeError, ValueError):
-            v = float("nan")
-        if not (np.isfinite(v) and ok(v)):
-            raise ValueError(f"`{fn}({name}=...)` must be {expected}, got {value!r}")
+    given = {"gain_margin_db": gain_margin_db, "phase_margin_deg": phase_margin_deg,
+             "modulus_margin": modulus_margin}
+    for name, ok, expected in MARGIN_REQUIREMENTS:
+        static_number(given[name], f"{fn}({name}=...)", ok, expected)
     lo, hi = drive.travel_m
     if positions_m is None:
         positions_m = np.linspace(lo, hi, int(round((hi - lo) / 1e-3)) + 1)

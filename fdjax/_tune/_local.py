@@ -259,12 +259,8 @@ def _start(fn, parameterisation, start, n=None):
 def smooth_max(values: Float[ArrayLike, " n"], sharpness: float) -> Float[Array, ""]:
     r"""A smooth maximum, (1/β) ln((1/n) Σ e^{β v_i}): between the mean (β → 0) and the
     maximum (β → ∞), below the maximum by at most ln(n)/β; β a finite positive number."""
-    where = "smooth_max(sharpness=...)"
-    if isinstance(sharpness, jax.Array | np.ndarray):
-        sharpness = _checks.check(sharpness, lambda b: (b > 0) & (b < np.inf), where,
-                                  "a finite positive number")
-    else:
-        sharpness = _checks.static_positive(sharpness, where)
+    sharpness = _checks.check(sharpness, lambda b: (b > 0) & (b < np.inf),
+                              "smooth_max(sharpness=...)", "a finite positive number")
     v = jnp.asarray(values)
     return (jax.nn.logsumexp(sharpness * v) - jnp.log(v.shape[0])) / sharpness
 

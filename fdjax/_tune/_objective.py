@@ -40,7 +40,7 @@ from .._drive._twin import TwinOptions, state_space
 from .._results import RESULTS
 from .._simulation import SampledData, simulate
 from .._trajectory import Trajectory
-from ._penalties import margin_penalty
+from ._penalties import MARGIN_REQUIREMENTS, margin_penalty
 
 __all__ = ["Objective", "ObjectiveTerms"]
 
@@ -154,22 +154,13 @@ class Objective(eqx.Module):
                 raise ValueError(f"`Objective({name}=...)` must be finite and {kind}, got "
                                  f"{float(v)!r}")
         # the static settings: each fixes what is compiled, so each is checked here
-        for name, ok, expected in (
-            ("modulus_margin", lambda v: 0 < v <= 1, "in (0, 1] (|1 + L| → 1 at high frequency)"),
-            ("gain_margin_db", lambda v: v >= 0, "finite and non-negative (dB)"),
-            ("phase_margin_deg", lambda v: 0 <= v < 180, "in [0, 180) degrees"),
+        for name, ok, expected in MARGIN_REQUIREMENTS + (
             ("max_growth_rate", lambda v: True, "finite (1/s)"),
             ("current_limit_a", lambda v: v > 0, "finite and positive (A)"),
             ("duration", lambda v: v > 0, "finite and positive (s)"),
             ("error_bound_m", lambda v: v > 0, "finite and positive (m)"),
         ):
-            value = getattr(self, name)
-            try:
-                v = _checks.concrete_float(value, f"Objective({name}=...)")
-            except (TypeError, ValueError):
-                v = math.nan
-            if not (math.isfinite(v) and ok(v)):
-                raise ValueError(f"`Objective({name}=...)` must be {expected}, got {value!r}")
+            _checks.static_number(getattr(self, name), f"Objective({name}=...)", ok, expected)
 
     def resolved(self, drive: BallScrewDrive, fn: str = "Objective") -> Objective:
         """This objective with its twin's number of kept modes counted for ``drive`` (when the

@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from .._checks import concrete_float, fmt, instance, is_concrete
+from .._checks import check, concrete_float, instance, is_concrete
 from .._control import DoubleLoop, PIDLoop
 from .._control._controllers import AbstractController
 from .._control._servo import Servo
@@ -86,18 +86,13 @@ _LOGIT_EPS = float(np.finfo(np.float64).eps)
 saturated, so that a filter on the boundary of the bounds (``to_mcm`` of a large θ) reads back."""
 
 
-def _within(x: Array, lo: float, hi: float, message: str) -> Array:
-    """x with lo ≤ x ≤ hi checked (to 1e-12 of each bound's size: the filters keep log ω, log ξ,
-    log ζ, and a bound comes back from exp(log x) to a few ulps): a ``ValueError`` ending in the
-    value when concrete, an ``eqx.error_if`` with the same message under a transformation
-    (never a silent NaN)."""
-    lo, hi = lo - 1e-12 * abs(lo), hi + 1e-12 * abs(hi)
-    if is_concrete(x):
-        v = np.asarray(x)
-        if not np.all((v >= lo) & (v <= hi)):
-            raise ValueError(f"{message}, got {fmt(v)}")
-        return x
-    return eqx.error_if(x, ~((x >= lo) & (x <= hi)), message)
+def _within(x: Array, lo: float, hi: float, where: str, name: str) -> Array:
+    """x checked inside [lo, hi] by :func:`fdjax._checks.check` (eagerly or as an
+    ``eqx.error_if``), to 1e-12 of each bound's size: the filters keep log ω, log ξ, log ζ, and
+    a bound comes back from exp(log x) to a few ulps."""
+    a, b = lo - 1e-12 * abs(lo), hi + 1e-12 * abs(hi)
+    return check(x, lambda v: (v >= a) & (v <= b), where,
+                 f"a filter with {name} inside [{lo:.6g}, {hi:.6g}]")
 
 
 def _unbox(x: Array, lo: float, hi: float, name: str, where: str, *,
@@ -105,7 +100,7 @@ def _unbox(x: Array, lo: float, hi: float, name: str, where: str, *,
     """The inverse of ``_box``, logit(log(x/lo)/log(hi/lo)); with ``inverted`` the inverse of
     x = lo^{σ(θ)} on (lo, 1) (the notch depth), logit(log x/log lo).  x on the closed interval
     [lo, hi] (where ``_box`` saturates) reads back as the θ of σ(θ) = ε or 1 − ε."""
-    x = _within(x, lo, hi, f"`{where}`: {name} must lie inside [{lo:.6g}, {hi:.6g}]")
+    x = _within(x, lo, hi, where, name)
     u = jnp.log(x) / math.log(lo) if inverted else jnp.log(x / lo) / math.log(hi / lo)
     u = jnp.clip(u, _LOGIT_EPS, 1.0 - _LOGIT_EPS)
     return jnp.log(u) - jnp.log1p(-u)
@@ -221,8 +216,7 @@ class MCMBounds(eqx.Module):
             )
         w_lo, w_hi = self._omega
         pm = self.peak_phase_max
-        phi = _within(pk.phi[0], -pm, pm,
-                      f"`{where}`: the peak phase must lie inside [−{pm:.6g}, {pm:.6g}] rad")
+        phi = _within(pk.phi[0], -pm, pm, where, "the peak phase (rad)")
         depth = nt.zeta_n[0] / nt.zeta_d[0]
         return jnp.stack([
             _unbox(pk.K[0], *self.peak_gain, "the peak gain K", where),

@@ -35,6 +35,14 @@ from .. import _checks
 __all__ = ["soft_min", "modulus_distance", "gain_distance", "phase_distance", "margin_penalty"]
 
 
+MARGIN_REQUIREMENTS = (
+    ("modulus_margin", lambda v: 0 < v <= 1, "in (0, 1] (|1 + L| → 1 at high frequency)"),
+    ("gain_margin_db", lambda v: v >= 0, "finite and non-negative (dB)"),
+    ("phase_margin_deg", lambda v: 0 <= v < 180, "in [0, 180) degrees"),
+)
+"""The margin requirements an objective and a certificate take: (name, test, expected)."""
+
+
 def _positive(value, where: str):
     """A finite positive setting, checked when the caller gives a number (an objective's traced
     leaves were checked where the objective was built)."""

@@ -51,10 +51,6 @@ GAIN_OUTPUTS = ("log_kp", "log_kv", "log_ki")
 """The gain outputs of an :class:`ATANetwork` with ``gains=True``: δ_p, δ_v, δ_i."""
 
 
-# Ball screws are made up to about 10–15 m long; a network's travel beyond this was given in mm.
-_LONGEST_TRAVEL_M = 20.0
-
-
 class ATANetwork(eqx.Module):
     r"""The scheduling network: normalised table position in, two sigmoid hidden layers of
     ``width`` neurons, the seven normalised MCM parameters out, and with ``gains=True`` the
@@ -78,7 +74,7 @@ class ATANetwork(eqx.Module):
                 f"`ATANetwork(travel_m=...)` must be an increasing (min, max) pair in m, got "
                 f"{travel_m!r}"
             )
-        if hi > _LONGEST_TRAVEL_M:  # no ball screw is that long: a travel given in mm
+        if hi > _checks.LONGEST_TRAVEL_M:  # no ball screw is that long: a travel given in mm
             raise ValueError(
                 f"`ATANetwork(travel_m=...)` must be a (min, max) pair in m, got {travel_m!r}; "
                 f"table positions are in metres: {hi:.6g} mm is {hi * 1e-3:.6g} m"
@@ -268,14 +264,17 @@ class InterpolatedLoop(AbstractController):
 
     def normalised(self, position_m: Float[ArrayLike, ""]) -> Float[Array, " 7"]:
         """θ(Y) (class docstring)."""
-        y = self._position(position_m, "InterpolatedLoop.normalised(position_m=...)")
+        return self._interpolated(
+            self._position(position_m, "InterpolatedLoop.normalised(position_m=...)"))
+
+    def _interpolated(self, y):
         return jax.vmap(lambda col: jnp.interp(y, self.positions_m, col))(self.theta.T)
 
     def controller(self, position_m: Float[ArrayLike, ""]) -> DoubleLoop:
         """The fixed double loop at table position Y (m); outside the design positions the
         end designs hold."""
-        position_m = self._position(position_m, "InterpolatedLoop.controller(position_m=...)")
-        mcm = self.bounds.to_mcm(self.normalised(position_m))
+        y = self._position(position_m, "InterpolatedLoop.controller(position_m=...)")
+        mcm = self.bounds.to_mcm(self._interpolated(y))
         return eqx.tree_at(lambda c: c.mcm, self.loop, mcm)
 
     def law(self, position_m) -> Law:

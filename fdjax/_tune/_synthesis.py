@@ -399,7 +399,7 @@ def evaluate(
                         f"controller, got {type(controllers).__name__}")
     for name, c in controllers.items():
         instance(c, AbstractController, f"evaluate(controllers[{name!r}]=...)",
-                         "an fdjax controller")
+                 "an fdjax controller")
     instance(drive, BallScrewDrive, "evaluate(drive=...)")
     servo = reference_servo() if servo is None else servo
     instance(servo, Servo, "evaluate(servo=...)")
