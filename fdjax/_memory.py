@@ -16,7 +16,7 @@ import os
 
 import jax
 
-__all__ = ["release", "memory_maps"]
+__all__ = ["release", "memory_maps", "available_bytes"]
 
 _THRESHOLD = 25_000
 
@@ -38,3 +38,16 @@ def release(threshold: int = _THRESHOLD) -> bool:
     jax.clear_caches()
     gc.collect()
     return True
+
+
+def available_bytes() -> int | None:
+    """The memory available to a new allocation (MemAvailable of /proc/meminfo, bytes), or
+    None where it cannot be read."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None

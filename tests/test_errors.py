@@ -195,6 +195,9 @@ def test_more_inputs_are_named_before_any_work():
         (lambda: fdjax.simulate(loop, drive, ref, fdjax.PadeODE(), position_m=0.3,
                                 duration=1e-6),
          r"`simulate\(duration=\.\.\.\)` must span at least one output period of PadeODE"),
+        (lambda: fdjax.simulate(loop, drive, ref, position_m=0.3, duration=1e6),
+         r"`simulate\(duration=\.\.\.\)`: 1e\+06 s is 8000000001 output samples .* GiB, more "
+         r"than the .* GiB of memory available"),
         (lambda: fdjax.gain_headroom(loop, drive),
          r"`gain_headroom\(position_m=\.\.\.\)` is required"),
         (lambda: fdjax.DiscreteFilter([[1.0, 0.0, 0.0, 0.0, 0.0, 0.0]], np.zeros((0, 6)), 1e-4),
