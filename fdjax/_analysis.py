@@ -137,7 +137,7 @@ def _check_controller(controller, fn: str) -> AbstractController:
     _checks.instance(controller, AbstractController, f"{fn}(controller=...)",
                      "an fdjax controller (DoubleLoop, PIDLoop or a subclass of "
                      "fdjax.AbstractController)")
-    return controller
+    return _checks.finite_parameters(controller, f"{fn}(controller=...)")
 
 
 def _check_servo(servo, fn: str) -> Servo:
@@ -168,6 +168,11 @@ def _plant(plant, position_m, fn: str, *, twin=None, freq_hz=None, screw_ratio=N
                 f"from jax.vmap over positions, got A of shape {plant.A.shape}"
             )
         return "model", plant, plant.A.ndim == 2
+    if not isinstance(plant, np.ndarray | jax.Array | list | tuple):
+        raise TypeError(
+            f"`{fn}(plant=...)` must be a BallScrewDrive (with position_m), a StateSpace, or an "
+            f"FRF array of shape (..., n_freq, 3, 2), got {type(plant).__name__}"
+        )
     H = jnp.asarray(plant)
     if freq_hz is None or H.ndim < 3 or H.shape[-2:] != (3, 2) or H.shape[-3] != freq_hz.shape[0]:
         n = "n_freq" if freq_hz is None else f"n_freq = {freq_hz.shape[0]}"
@@ -185,8 +190,17 @@ def _plant(plant, position_m, fn: str, *, twin=None, freq_hz=None, screw_ratio=N
         )
     sr = _checks.positive(jnp.asarray(screw_ratio, jnp.float64), f"{fn}(screw_ratio=...)")
     H = _checks.finite(H.astype(jnp.complex128), f"{fn}(plant=...)")
-    pos = jnp.full(H.shape[:-3], jnp.nan) if position_m is None else jnp.broadcast_to(
-        jnp.asarray(position_m, jnp.float64), H.shape[:-3])
+    if position_m is None:
+        pos = jnp.full(H.shape[:-3], jnp.nan)
+    else:
+        pos = _checks.real_array(position_m, f"{fn}(position_m=...)")
+        try:
+            pos = jnp.broadcast_to(pos, H.shape[:-3])
+        except ValueError:
+            raise ValueError(
+                f"`{fn}(position_m=...)` must be one position per FRF, shape {H.shape[:-3]} "
+                f"(the FRF array's leading axes), got shape {pos.shape}"
+            ) from None
     return "frf", (H, sr, pos), H.ndim == 3
 
 
@@ -199,6 +213,13 @@ def _entry(fn, controller, plant, servo, method, position_m, twin, *,
     f = None if freq_hz is None else _grid(freq_hz, fn, min_points)
     kind, p, scalar = _plant(plant, position_m, fn, twin=twin,
                              freq_hz=f, screw_ratio=screw_ratio)
+    where = f"{fn}(position_m=...)"
+    if kind == "drive":
+        p = (p[0], controller.check_position(p[1], where), p[2])
+    elif kind == "frf":
+        checked = controller.check_position(position_m, where)  # None: a fixed controller
+        if checked is not None:
+            p = (p[0], p[1], jnp.broadcast_to(jnp.asarray(checked, jnp.float64), p[2].shape))
     if f is None and kind == "frf":
         raise TypeError(f"`{fn}(plant=...)` must be a drive or a StateSpace, not an FRF array")
     if f is not None:
@@ -293,12 +314,24 @@ def open_loop(
     return OpenLoop(freq_hz=f, **_squeeze(loops, scalar, kind))
 
 
+def _frf_loops(method, controller, p, omega, servo):
+    """The open loops of measured FRFs (…, n_freq, 3, 2), each with the controller's law at its
+    own table position (a scheduled controller's law takes one position)."""
+    H, sr, pos = p
+
+    def one(h, y):
+        return method.frf_open_loops(controller, h, omega, sr, servo, y)
+
+    if pos.ndim == 0:
+        return one(H, pos)
+    out = jax.vmap(one)(H.reshape((-1,) + H.shape[-3:]), pos.reshape(-1))
+    return jax.tree_util.tree_map(lambda L: L.reshape(pos.shape + L.shape[1:]), out)
+
+
 def _open_loop_impl(controller, kind, p, f, servo, method):
     omega = _TWO_PI * f
     if kind == "frf":
-        H, sr, pos = p
-        out = method.frf_open_loops(controller, H, omega, sr, servo, pos[..., None])
-        return out
+        return _frf_loops(method, controller, p, omega, servo)
 
     def one(twin):
         L_fn, params = method.open_loop_model(controller, twin, servo)
@@ -326,12 +359,12 @@ def stability_margins(
         freq_hz: positive, increasing grid (Hz), long enough to contain the crossovers.
         L: complex open loop on that grid, shape (*batch, n_freq).
     """
-    f = _checks.frequency_grid(freq_hz, "stability_margins(freq_hz=...)")
+    f = _grid(freq_hz, "stability_margins", 3)
     L = jnp.asarray(L)
-    if L.ndim < 1 or L.shape[-1] != f.shape[0] or f.shape[0] < 3:
+    if L.ndim < 1 or L.shape[-1] != f.shape[0]:
         raise ValueError(
             f"`stability_margins(L=...)` must have shape (*batch, n_freq) with n_freq = "
-            f"{f.shape[0]} ≥ 3, got {L.shape}"
+            f"{f.shape[0]}, got {L.shape}"
         )
     L = _checks.finite(L.astype(jnp.complex128), "stability_margins(L=...)")
     return _stability_margins_jit(f, L)
@@ -371,6 +404,10 @@ def loop_margins(
     array they are interpolated (:func:`stability_margins`).  The grid must bracket every
     crossing (a few hundred points per decade around lightly damped modes).
 
+    Margins are read from the open loops alone; they do not say whether the closed loop is
+    stable (a loop whose Nyquist curve encircles −1 has margins too).  Ask
+    :func:`check_stability` (the eigenvalues), as :func:`fdjax.certify` does.
+
     Args: as :func:`open_loop` (at least 3 frequencies).
     """
     controller, servo, method, kind, p, scalar, f = _entry(
@@ -384,8 +421,7 @@ def _loop_margins_impl(controller, kind, p, f, servo, method):
     u = jnp.log(_TWO_PI * f)
     omega = _TWO_PI * f
     if kind == "frf":
-        H, sr, pos = p
-        loops = method.frf_open_loops(controller, H, omega, sr, servo, pos[..., None])
+        loops = _frf_loops(method, controller, p, omega, servo)
         return LoopMargins(**{
             k: None if L is None else _batched_grid_margins(u, L) for k, L in loops.items()
         })
@@ -466,6 +502,7 @@ def check_stability(
         throw: raise when unstable — eagerly a RuntimeError with ``.message``; under ``jit`` the
             result code's own message.  Off by default: an unstable loop is an answer.
     """
+    throw = _checks.static_bool(throw, "check_stability(throw=...)")
     controller, servo, method, kind, p, scalar, _ = _entry(
         "check_stability", controller, plant, servo, method, position_m, twin
     )
@@ -538,10 +575,10 @@ def gain_headroom(
         g per position (NumPy array of the positions' shape).
     """
     fn = "gain_headroom"
-    if not (isinstance(max_gain, (int, float)) and max_gain > 1):
-        raise ValueError(f"`{fn}(max_gain=...)` must be a number > 1, got {max_gain!r}")
-    if not (isinstance(rtol, (int, float)) and 0 < rtol <= 0.1):
-        raise ValueError(f"`{fn}(rtol=...)` must be a number in (0, 0.1], got {rtol!r}")
+    max_gain = _checks.static_number(max_gain, f"{fn}(max_gain=...)", lambda v: v > 1,
+                                     "a number > 1")
+    rtol = _checks.static_number(rtol, f"{fn}(rtol=...)", lambda v: 0 < v <= 0.1,
+                                 "a number in (0, 0.1]")
     _check_controller(controller, fn)
     _check_servo(servo, fn)
     _check_method(method, fn)

@@ -82,9 +82,32 @@ def inside(value, lo: float, hi: float, where: str, what: str = "the travel"):
         arr = np.asarray(value, np.float64)
         with np.errstate(invalid="ignore"):
             bad = arr[~np.broadcast_to(ok(arr), arr.shape)]
-            if np.all(ok(bad * 1e-3)):
+            if np.all(ok(bad / 1000)):  # 700 * 1e-3 is 0.7000000000000001
                 raise ValueError(f"{err}; table positions are in metres: {bad[0]:.6g} mm is "
-                                 f"{bad[0] * 1e-3:.6g} m") from None
+                                 f"{bad[0] / 1000:.6g} m") from None
+        raise
+
+
+def mm_hint(value: float) -> str:
+    """The end of a message about a length (m) that was given in millimetres."""
+    return f"; lengths are in metres: {value:.6g} mm is {value / 1000:.6g} m"
+
+
+def at_most(value, limit: float, where: str, reason: str):
+    """A concrete length (m) checked at most ``limit`` by :func:`check`, the message giving
+    ``reason``; a value beyond it whose thousandth is within it was given in millimetres, and
+    the message says so (:func:`mm_hint`).  A traced value is returned as it is: a
+    plausibility check of what is given, not a guard of what is computed."""
+    if not is_concrete(value):
+        return value
+    ok = lambda v: v <= limit  # noqa: E731
+    try:
+        return check(value, ok, where, f"at most {limit:g} m ({reason})")
+    except ValueError as err:  # concrete and real here
+        arr = np.asarray(value, np.float64)
+        bad = arr[~np.broadcast_to(ok(arr), arr.shape)]
+        if np.all(ok(bad / 1000)):
+            raise ValueError(f"{err}{mm_hint(float(bad[0]))}") from None
         raise
 
 
@@ -297,8 +320,26 @@ def static_positive(value, where: str) -> float:
 def static_bool(value, where: str) -> bool:
     """A static flag: a Python or NumPy bool (not a traced value, not an int)."""
     if not isinstance(value, bool | np.bool_):
-        raise ValueError(f"`{where}` must be a bool, got {value!r}")
+        raise TypeError(f"`{where}` must be a bool, got {value!r}")
     return bool(value)
+
+
+def finite_parameters(tree, where: str, traced: bool = False):
+    """Every floating-point array leaf of a parameter pytree (a controller, a drive) finite.
+    Concrete leaves are checked here, the first non-finite one named by its path; traced ones
+    only with ``traced=True``, by an ``eqx.error_if`` on the returned tree.  Returns the tree."""
+    leaves = [(path, x) for path, x in jax.tree_util.tree_leaves_with_path(tree)
+              if eqx.is_inexact_array(x)]
+    for path, x in leaves:
+        if is_concrete(x) and not np.all(np.isfinite(np.asarray(x))):
+            raise ValueError(f"`{where}` must have finite parameters, got "
+                             f"{np.asarray(x).ravel()[~np.isfinite(np.asarray(x).ravel())][0]}"
+                             f" in {jax.tree_util.keystr(path)}")
+    live = [x for _, x in leaves if not is_concrete(x)]
+    if not (traced and live):
+        return tree
+    bad = jnp.logical_not(jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in live])))
+    return eqx.error_if(tree, bad, f"`{where}` must have finite parameters")
 
 
 def finite_tree(tree, where: str):

@@ -35,10 +35,12 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from ._checks import (
+    LONGEST_TRAVEL_M,
     check,
     concrete_float,
     finite,
     finite_output,
+    inside,
     is_concrete,
     nonnegative,
     positive,
@@ -250,6 +252,15 @@ def _number(value, where: str, test) -> float:
     return test(concrete_float(value, where), where)
 
 
+def _move(value, where: str) -> float:
+    """A signed move length (m), finite and no longer than :data:`LONGEST_TRAVEL_M` (no
+    ball-screw axis is longer): a longer one was given in millimetres, and the message says
+    so with its value in metres (:func:`fdjax._checks.inside`)."""
+    d = _number(value, where, finite)
+    return inside(d, -LONGEST_TRAVEL_M, LONGEST_TRAVEL_M, where,
+                  "the longest travel of a ball-screw axis")
+
+
 def _double_s_durations(h: float, v: float, a: float, j: float) -> tuple[float, float, float]:
     r"""(T_j, T_c, T_v): jerk, constant-acceleration and cruise durations for a rest-to-rest move.
 
@@ -305,8 +316,9 @@ def jerk_limited(
     **Arguments:**
 
     - ``distance``: signed move length in m (negative moves backwards; 0 gives a pure dwell;
-      300 mm is ``0.3``). The travel is checked where the move meets a drive (see
-      :meth:`Trajectory.position_range`).
+      300 mm is ``0.3``), at most 20 m (``LONGEST_TRAVEL_M``) either way: a longer one was
+      given in mm and is refused, with its value in metres. The travel is checked where the
+      move meets a drive (see :meth:`Trajectory.position_range`).
     - ``v_max``, ``a_max``, ``j_max``: positive limits in m/s, m/s², m/s³.
     - ``start``: initial position in m.
     - ``dwell``: rest time appended after the move in s (a zero-jerk segment).
@@ -315,7 +327,7 @@ def jerk_limited(
     duration T + ``dwell``, ending at ``start + distance``.
     """
     fn = "jerk_limited({}=...)"
-    d = _number(distance, fn.format("distance"), finite)
+    d = _move(distance, fn.format("distance"))
     v = _number(v_max, fn.format("v_max"), positive)
     a = _number(a_max, fn.format("a_max"), positive)
     j = _number(j_max, fn.format("j_max"), positive)
@@ -407,9 +419,11 @@ def reciprocating(
 
     **Arguments:**
 
-    - ``stroke``: signed stroke length in m (negative goes backwards first; 5 mm is ``5e-3``).
-      A trajectory does not know the drive: whoever places it on one checks start + stroke
-      against the travel, e.g. with :meth:`Trajectory.position_range`.
+    - ``stroke``: signed stroke length in m (negative goes backwards first; 5 mm is ``5e-3``),
+      at most 20 m (``LONGEST_TRAVEL_M``) either way: a longer one was given in mm and is
+      refused, with its value in metres. A trajectory does not know the drive: whoever places
+      it on one checks start + stroke against the travel, e.g. with
+      :meth:`Trajectory.position_range` (``simulate`` does).
     - ``v_max``, ``a_max``, ``j_max``: positive limits in m/s, m/s², m/s³.
     - ``cycles``: number of out-and-back cycles, an integer ≥ 1.
     - ``dwell``: rest after each stroke in s.
@@ -417,13 +431,12 @@ def reciprocating(
     """
     cycles = static_int(cycles, "reciprocating(cycles=...)", 1)
     fn = "reciprocating({}=...)"
-    tests = {"stroke": finite, "v_max": positive, "a_max": positive, "j_max": positive}
-    names = {"stroke": stroke, "v_max": v_max, "a_max": a_max, "j_max": j_max}
-    vals = {k: _number(x, fn.format(k), tests[k]) for k, x in names.items()}
+    h = _move(stroke, fn.format("stroke"))
+    names = {"v_max": v_max, "a_max": a_max, "j_max": j_max}
+    limits = tuple(_number(x, fn.format(k), positive) for k, x in names.items())
     rest = _number(dwell, fn.format("dwell"), nonnegative)
     r0 = _number(start, fn.format("start"), finite)
 
-    limits = (vals["v_max"], vals["a_max"], vals["j_max"])
-    out = jerk_limited(vals["stroke"], *limits, start=r0, dwell=rest)
-    back = jerk_limited(-vals["stroke"], *limits, start=r0 + vals["stroke"], dwell=rest)
+    out = jerk_limited(h, *limits, start=r0, dwell=rest)
+    back = jerk_limited(-h, *limits, start=r0 + h, dwell=rest)
     return concatenate(*([out, back] * int(cycles)))

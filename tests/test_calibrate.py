@@ -62,7 +62,8 @@ def test_model_updating_recovers_known_parameters(drive):
     res = update_model(drive, data, bounds, 0.2, max_steps=100)
     assert bool(res.success)
     for p, v in zip(paths, true):
-        np.testing.assert_allclose(res.parameters[p], v, rtol=1e-4, err_msg=p)
+        # noise-free data: the fit ends at the solver's tolerance (measured 2.1e-9)
+        np.testing.assert_allclose(res.parameters[p], v, rtol=1e-7, err_msg=p)
     assert np.all(res.within((1e-6, 1e-5, 1e-3)))
     assert res.at_bound == {p: False for p in paths}
     # the true nut stiffness above its upper bound: the fit ends on that bound, and says so

@@ -16,6 +16,7 @@ import numpy as np
 import optax
 import pytest
 import scipy.signal as sig
+from jit_errors import CHECK_FAILED
 from scipy.optimize import linear_sum_assignment
 from table1 import table1_loop  # the Table 1 drive's hand-set double loop
 
@@ -204,7 +205,9 @@ def test_new_controller_under_jit_vmap_grad(drive):
     h = 1e-5
     bump = lambda d: eqx.tree_at(lambda c: c.log_k, ctl, ctl.log_k + d)
     fd = (rms(bump(h), 0.4) - rms(bump(-h), 0.4)) / (2 * h)
-    np.testing.assert_allclose(g.log_k, fd, rtol=1e-5)
+    # central differences: truncation h²·f'''/6 and round-off ε/h, both near 1e-10 here
+    # (measured 2.7e-10)
+    np.testing.assert_allclose(g.log_k, fd, rtol=1e-8)
     gp = eqx.filter_grad(lambda c: rms(c, 0.4, fdjax.PadeODE(pade_order=PADE)))(ctl)
     assert np.isfinite(float(gp.log_wz)) and float(gp.log_k) != 0.0
 
@@ -289,8 +292,6 @@ def test_gradients_touch_only_the_tunables(drive):
         updates, _ = opt.update(g, state)
     stepped = eqx.apply_updates(loop, updates)
     assert float(stepped.kv) != float(loop.kv)
-    # the servo is not a leaf of the controller: nothing an optimiser does reaches it
-    assert not any(x is SERVO.k_motor for x in jax.tree_util.tree_leaves(stepped))
 
 
 # ---------------------------------------------------------------- one compilation
@@ -336,21 +337,21 @@ def test_failures_carry_their_message_under_jit_and_vmap(drive):
                                          r"the travel \[0.1, 0.7\] m"):
         sim(fine, 0.699)
     jitted = jax.jit(lambda c, p: sim(c, p).x2)
-    with pytest.raises(Exception, match="the closed loop is unstable"):
+    with pytest.raises(CHECK_FAILED, match="the closed loop is unstable"):
         jax.block_until_ready(jitted(hot, 0.3))
-    with pytest.raises(Exception, match="the reference motion takes the table outside"):
+    with pytest.raises(CHECK_FAILED, match="the reference motion takes the table outside"):
         jax.block_until_ready(jitted(fine, 0.699))
     # a start position outside the travel, under jit
-    with pytest.raises(Exception,
+    with pytest.raises(CHECK_FAILED,
                        match=r"`simulate\(position_m=\.\.\.\)` must be inside the travel"):
         jax.block_until_ready(jitted(fine, 0.9))
     res = jax.vmap(lambda p: sim(hot, p, throw=False).result._value)(jnp.array([0.2, 0.3]))
     assert np.all(np.asarray(res) == fdjax.RESULTS.unstable._value)
-    with pytest.raises(Exception, match="the reference motion takes the table outside"):
+    with pytest.raises(CHECK_FAILED, match="the reference motion takes the table outside"):
         jax.block_until_ready(jax.jit(jax.vmap(
             lambda p: sim(fine, p, moving=True).x2))(jnp.array([0.3, 0.699])))
     # check_stability with throw under jit
-    with pytest.raises(Exception, match="the closed loop is unstable"):
+    with pytest.raises(CHECK_FAILED, match="the closed loop is unstable"):
         jax.block_until_ready(jax.jit(
             lambda p: fdjax.check_stability(hot, drive, position_m=p, twin=TWIN6,
                                             throw=True).growth_rate)(0.3))

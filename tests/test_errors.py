@@ -5,6 +5,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from jit_errors import CHECK_FAILED
 
 import fdjax
 
@@ -94,14 +95,14 @@ def test_errors_under_jit():
         return drive.frf(y, FREQ)
 
     assert f(jnp.array([0.3])).shape == (1, 5, 3, 2)
-    with pytest.raises(Exception, match=r"inside the travel"):
+    with pytest.raises(CHECK_FAILED, match=r"inside the travel"):
         jax.block_until_ready(f(jnp.array([0.9])))
 
     @jax.jit
     def g(lead):
         return fdjax.Screw(length=1.0, diameter=0.03, lead=lead).ratio
 
-    with pytest.raises(Exception, match=r"Screw\(lead=\.\.\.\)` must be finite and positive"):
+    with pytest.raises(CHECK_FAILED, match=r"Screw\(lead=\.\.\.\)` must be finite and positive"):
         jax.block_until_ready(g(jnp.asarray(-0.01)))
 
 
@@ -114,14 +115,14 @@ def test_nan_parameter_inside_jit_is_not_silent():
         return d.frf(jnp.array([0.3]), FREQ)
 
     # tree_at bypasses the constructor's checks; the non-finite result is caught instead
-    with pytest.raises(Exception, match=r"non-finite result; check the parameters for NaN"):
+    with pytest.raises(CHECK_FAILED, match=r"non-finite result; check the parameters for NaN"):
         jax.block_until_ready(f(jnp.asarray(jnp.nan)))
 
     @jax.jit
     def g(k):
         return fdjax.NutJoint(stiffness=k).dynamic_stiffness(1.0)
 
-    with pytest.raises(Exception, match=r"NutJoint\(stiffness=\.\.\.\)` must be finite"):
+    with pytest.raises(CHECK_FAILED, match=r"NutJoint\(stiffness=\.\.\.\)` must be finite"):
         jax.block_until_ready(g(jnp.asarray(jnp.nan)))
 
 
@@ -189,7 +190,7 @@ def test_more_inputs_are_named_before_any_work():
         (lambda: dataclasses.replace(drive, travel_m=(100.0, 700.0)),
          r"table positions are in metres: 700 mm is 0\.7 m"),
         (lambda: fdjax.simulate(loop, drive, ref, position_m=0.3, moving="no"),
-         r"`simulate\(moving=\.\.\.\)` must be a bool"),
+         r"`simulate\(moving=\.\.\.\)` must be a bool", TypeError),
         (lambda: fdjax.simulate(loop, drive, ref, position_m=0.3, disturbance=np.full(n, np.nan)),
          r"`simulate\(disturbance=\.\.\.\)` must be finite"),
         (lambda: fdjax.simulate(loop, drive, ref, fdjax.PadeODE(), position_m=0.3,
@@ -206,10 +207,11 @@ def test_more_inputs_are_named_before_any_work():
          r"`LTI\(A=\.\.\., B=\.\.\., C=\.\.\., D=\.\.\.\)` must have shapes"),
         (lambda: drive.frf(0.3, []), r"must be a 1-D grid of at least one frequency"),
         (lambda: fdjax.jerk_limited("0.3", 0.1, 1.0, 100.0),
-         r"`jerk_limited\(distance=\.\.\.\)` must be a number or an array of numbers, got '0\.3'"),
+         r"`jerk_limited\(distance=\.\.\.\)` must be a number or an array of numbers, got '0\.3'",
+         TypeError),
     ]
-    for call, match in cases:
-        with pytest.raises((ValueError, TypeError), match=match):
+    for call, match, *kind in cases:
+        with pytest.raises(kind[0] if kind else ValueError, match=match):
             call()
     with pytest.raises(TypeError, match=r"`gain_headroom\(controller=\.\.\.\)` must be"):
         fdjax.gain_headroom("x", drive, position_m=0.3)
@@ -274,3 +276,105 @@ def test_first_use_inside_a_users_jit_leaks_no_tracer():
     assert out.returncode == 0, out.stderr[-2000:]
     a, *v = (float(x) for x in out.stdout.split())
     assert len(v) == 2 and abs(v[1] - a) <= 1e-12 * abs(a), (a, v)
+
+
+def test_a_controller_with_nan_parameters_is_named():
+    """A NaN gain in a user's controller reached the law inside fdjax's compiled programs,
+    where no check sees it: margins came back inf and the stability verdict "pole at nan Hz".
+    Every entry point now names the leaf; under jit, simulate's check is an eqx.error_if."""
+    drive = fdjax.reference_drive()
+    bad = eqx.tree_at(lambda c: c.log_kv, fdjax.DoubleLoop(), jnp.asarray(jnp.nan))
+    f = np.geomspace(1.0, 3900.0, 50)
+    ref = fdjax.reciprocating(stroke=1e-3, v_max=0.05, a_max=2.0, j_max=400.0, cycles=1)
+    calls = {
+        "loop_margins": lambda: fdjax.loop_margins(bad, drive, f, position_m=0.3),
+        "open_loop": lambda: fdjax.open_loop(bad, drive, f, position_m=0.3),
+        "check_stability": lambda: fdjax.check_stability(bad, drive, position_m=0.3),
+        "gain_headroom": lambda: fdjax.gain_headroom(bad, drive, position_m=0.3),
+        "simulate": lambda: fdjax.simulate(bad, drive, ref, position_m=0.3),
+    }
+    for fn, call in calls.items():
+        with pytest.raises(ValueError, match=rf"`{fn}\(controller=\.\.\.\)` must have finite "
+                                             r"parameters, got nan in \.log_kv"):
+            call()
+    run = eqx.filter_jit(lambda c: fdjax.simulate(c, drive, ref, position_m=0.3).x2)
+    with pytest.raises(eqx.EquinoxRuntimeError,  # what eqx.filter_jit raises
+                       match=r"`simulate\(controller=\.\.\.\)` must have finite parameters"):
+        jax.block_until_ready(run(bad))
+    # the certificate of no position certifies nothing
+    with pytest.raises(ValueError, match=r"`certify\(positions_m=\.\.\.\)` must be a 1-D array "
+                                         r"of at least one position, got shape \(0,\)"):
+        fdjax.certify(fdjax.DoubleLoop(), drive, [])
+
+
+def test_a_scheduled_controller_on_measured_frfs():
+    """An FRF plant: each FRF's loop runs the schedule's controller at its own position, as
+    the fixed controller there does (the law of a schedule takes one position; it used to get
+    the batch's positions and fail)."""
+    drive = fdjax.reference_drive()
+    designs, _ = fdjax.load_designs()
+    f = np.geomspace(1.0, 3000.0, 200)
+    y = np.array([0.2, 0.45])
+    H = drive.frf(y, f)
+    kw = dict(screw_ratio=drive.screw.ratio, method=fdjax.Continuous())
+    for name in ("mcm_ata_e2e", "mcm_interp"):
+        sched = designs[name]
+        both = fdjax.loop_margins(sched, H, f, position_m=y, **kw)
+        for i, p in enumerate(y):
+            one = fdjax.loop_margins(sched.controller(p), H[i], f, position_m=p, **kw)
+            # the same arithmetic in another compiled program: round-off
+            np.testing.assert_allclose(both.speed.phase_margin_deg[i],
+                                       one.speed.phase_margin_deg, rtol=1e-10)
+            np.testing.assert_allclose(both.position.modulus_margin[i],
+                                       one.position.modulus_margin, rtol=1e-10)
+
+
+def test_a_twin_of_a_non_physical_drive_is_refused():
+    """A negative saddle mass (set past the constructor's check) gave a twin of NaN matrices
+    without a word; the eager call now says so, as the drive's FRFs do."""
+    drive = eqx.tree_at(lambda d: d.carriage.mass, fdjax.reference_drive(),
+                        jnp.asarray(-1000.0))
+    with pytest.raises(ValueError, match=r"`state_space` produced a non-finite result"):
+        fdjax.state_space(drive, 0.3)
+
+
+def test_identify_modes_without_an_order_inside_jit_says_what_to_give():
+    """The order is chosen eagerly (the stabilisation diagram); traced data used to fail with
+    JAX's TracerArrayConversionError."""
+    f = np.geomspace(20.0, 3000.0, 300)
+    h = jnp.asarray(np.asarray(fdjax.reference_drive().frf(0.3, f))[..., 1, 0].ravel())
+    with pytest.raises(ValueError, match=r"`identify_modes\(n_modes=\.\.\.\)` is required inside "
+                                         r"jit, vmap or grad"):
+        eqx.filter_jit(lambda h: fdjax.identify_modes(f, h).frequency_hz)(h)
+
+
+def test_a_schedule_names_the_callers_position():
+    """A schedule built for 200–600 mm, asked at 650 mm (inside the drive's travel): each
+    entry point refuses it eagerly with its own argument and the value (the network's check
+    inside the compiled program named only ScheduledLoop.controller); an FRF plant needs the
+    position, one per FRF."""
+    drive = fdjax.reference_drive()
+    base = fdjax.load_designs()[0]["mcm_ata_e2e"]
+    narrow = fdjax.ScheduledLoop(base.loop, fdjax.ATANetwork((0.2, 0.6), width=4), base.bounds)
+    ref = fdjax.reciprocating(stroke=1e-3, v_max=0.05, a_max=2.0, j_max=400.0, cycles=1)
+    f = np.geomspace(1.0, 3000.0, 50)
+    travel = r"must be inside the network's travel \[0\.2, 0\.6\] m, got 0\.65"
+    for fn, call in (
+            ("check_stability", lambda: fdjax.check_stability(narrow, drive, position_m=0.65)),
+            ("loop_margins", lambda: fdjax.loop_margins(narrow, drive, f, position_m=0.65)),
+            ("simulate", lambda: fdjax.simulate(narrow, drive, ref, position_m=0.65))):
+        with pytest.raises(ValueError, match=rf"`{fn}\(position_m=\.\.\.\)` {travel}"):
+            call()
+    with pytest.raises(ValueError, match=rf"`certify\(positions_m=\.\.\.\)` {travel}"):
+        fdjax.certify(narrow, drive, [0.3, 0.65])
+    H = drive.frf(np.array([0.3]), f)
+    kw = dict(screw_ratio=drive.screw.ratio, method=fdjax.Continuous())
+    with pytest.raises(ValueError, match=r"`loop_margins\(position_m=\.\.\.\)` is required: the "
+                                         r"schedule's law depends on the table position"):
+        fdjax.loop_margins(narrow, H, f, **kw)
+    with pytest.raises(ValueError, match=r"`loop_margins\(position_m=\.\.\.\)` must be one "
+                                         r"position per FRF, shape \(1,\) .* got shape \(2,\)"):
+        fdjax.loop_margins(narrow, H, f, position_m=[0.3, 0.4], **kw)
+    with pytest.raises(ValueError, match=r"`loop_margins\(position_m=\.\.\.\)` must be inside "
+                                         r"the network's travel .* 300 mm is 0\.3 m"):
+        fdjax.loop_margins(narrow, H, f, position_m=300.0, **kw)

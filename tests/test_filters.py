@@ -14,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.signal as sig
+from jit_errors import CHECK_FAILED
 
 import fdjax
 from fdjax._filters import (
@@ -788,7 +789,8 @@ def test_mcm_part_types():
 def test_errors_under_jit():
     f = jax.jit(lambda xi: PeakFilter(1.0, W, xi, 0.0).frf(FREQ))
     f(0.1)
-    with pytest.raises(Exception, match=r"`PeakFilter\(xi=...\)` must be finite and positive"):
+    with pytest.raises(CHECK_FAILED,
+                       match=r"`PeakFilter\(xi=...\)` must be finite and positive"):
         jax.block_until_ready(f(-0.1))
     g = jax.jit(lambda dt: NotchFilter(TWO_PI * F_NOTCH, 0.1, 0.3).discretize(dt).dt)
     with pytest.raises(
@@ -796,7 +798,7 @@ def test_errors_under_jit():
     ):
         jax.block_until_ready(g(1 / 2000))
     h = jax.jit(lambda w: NotchFilter(w, 0.1, 0.3).discretize(1 / 2000).dt)
-    with pytest.raises(Exception, match=r"below the Nyquist frequency"):
+    with pytest.raises(CHECK_FAILED, match=r"below the Nyquist frequency"):
         jax.block_until_ready(h(TWO_PI * F_NOTCH))
 
 

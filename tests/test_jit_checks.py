@@ -11,6 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from jit_errors import CHECK_FAILED
 
 import fdjax
 from fdjax._drive import ModalData, drive_modes
@@ -20,7 +21,7 @@ FREQ = np.array([20.0, 150.0])
 
 
 def _raises(match, fn, *args):
-    with pytest.raises(Exception, match=match):
+    with pytest.raises(CHECK_FAILED, match=match):
         jax.block_until_ready(fn(*args))
 
 
@@ -234,7 +235,7 @@ def test_state_space_under_jit_and_vmap(drive):
     with pytest.raises(ValueError, match=r"`state_space\(position_m=\.\.\.\)` must be inside the "
                                          r"travel \[0\.1, 0\.7\] m, got nan"):
         fdjax.state_space(drive, np.nan, twin=fdjax.TwinOptions(kept_modes=4))
-    with pytest.raises(ValueError, match=r"`TwinOptions\(residual=\.\.\.\)` must be a bool"):
+    with pytest.raises(TypeError, match=r"`TwinOptions\(residual=\.\.\.\)` must be a bool"):
         fdjax.TwinOptions(kept_modes=4, residual=1)
     with pytest.raises(ValueError, match=r"`count_modes\(n_positions=\.\.\.\)` must be an integer "
                                          r"at least 1, got 0"):

@@ -12,6 +12,7 @@ import numpy as np
 import optimistix as optx
 import pytest
 import scipy.linalg
+from jit_errors import CHECK_FAILED
 
 from fdjax._modal import ModalFit, identify_modes, identify_modes_batched, track_modes
 
@@ -100,9 +101,10 @@ def test_table1_noisy_accuracy(fits, table1):
     print("noisy Table 1: max rel. freq err", f_err.max(), "max rel. damping err",
           z_err.max(), "max phase err (deg)", p_err.max())
     assert fit.phase_deg.shape == (5,)
-    assert np.all(f_err < 0.005)
-    assert np.all(z_err < 0.10)
-    assert np.all(p_err < 5.0)
+    # measured 2.4e-4, 6.6e-3, 1.0° on this seed (the requirement: 0.5 %, 10 %, 5°)
+    assert np.all(f_err < 5e-4)
+    assert np.all(z_err < 0.012)
+    assert np.all(p_err < 1.5)
     # Phases are reported in (-360, 0]: Table 1's -260° stays -260°.
     assert np.all((np.asarray(fit.phase_deg) <= 0) & (np.asarray(fit.phase_deg) > -360))
     assert abs(float(fit.phase_deg[2]) + 260) < 5
@@ -124,7 +126,8 @@ def test_table1_clean_exact(fits, table1):
     np.testing.assert_allclose(fit.rigid_body, [C0, table1["c1"]], rtol=1e-7)
     np.testing.assert_allclose(fit.upper_residual, D, rtol=1e-5)
     assert float(fit.fit_error_total) < 1e-9
-    assert fit.num_steps >= 0 and fit.result == optx.RESULTS.successful
+    # the vector-fitting start is already at the optimum: one step confirms it (measured 1)
+    assert 1 <= int(fit.num_steps) <= 3 and fit.result == optx.RESULTS.successful
     np.testing.assert_allclose(fit.frf(FREQ), table1["h"], rtol=1e-9)
     # Each mode's own term at its natural frequency has the resonant phase.
     terms = np.asarray(fit.mode_frf(TABLE1[:, 0]))
@@ -150,8 +153,9 @@ def test_vector_fitting_stage_alone(fits, table1):
     np.testing.assert_allclose(vf.frequency_hz, clean.frequency_hz, rtol=1e-9)
     np.testing.assert_allclose(vf.damping_ratio, clean.damping_ratio, rtol=1e-8)
     vf = identify_modes(FREQ, noisy(table1["h"], 0), 5, refine=False)
-    np.testing.assert_allclose(vf.frequency_hz, TABLE1[:, 0], rtol=5e-3)
-    np.testing.assert_allclose(vf.damping_ratio, TABLE1[:, 1], rtol=0.1)
+    # measured 2.5e-4 and 6.7e-3 on this seed, a little above the refined fit's
+    np.testing.assert_allclose(vf.frequency_hz, TABLE1[:, 0], rtol=5e-4)
+    np.testing.assert_allclose(vf.damping_ratio, TABLE1[:, 1], rtol=0.012)
 
 
 def three_mass_state_space():
@@ -299,7 +303,8 @@ def test_vmap_matches_loop_and_no_retrace(crossing):
 def test_nan_under_jit_is_an_error(crossing):
     hs = crossing["hs"].copy()
     hs[3, 10, 1, 0] = np.nan
-    with pytest.raises(Exception, match=r"identify_modes_batched\(frf=\.\.\.\)` must be finite"):
+    with pytest.raises(CHECK_FAILED,
+                       match=r"identify_modes_batched\(frf=\.\.\.\)` must be finite"):
         jax.block_until_ready(crossing["batched"](hs))
 
 

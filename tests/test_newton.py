@@ -104,7 +104,7 @@ def test_tune_newton_lowers_the_objective_with_the_exact_hessian():
     with compilations() as names:
         again = fdjax.tune_newton(par, obj, drive, np.array([0.2, 0.6]), r.theta, steps=4)
     assert names == [], names
-    assert np.all(np.asarray(again.terms.total) <= np.asarray(again.history)[0])
+    assert np.all(np.asarray(again.terms.total) < 0.9 * np.asarray(again.history)[0])
     # the exact Hessian every other step, SR1 updates between: J falls as far in four steps
     sr1 = fdjax.tune_newton(par, obj, drive, pos, start, steps=4, hessian_every=2)
     assert np.all(np.asarray(sr1.terms.total) < 0.6 * np.asarray(sr1.history)[0])  # 0.57, 0.17
@@ -200,12 +200,13 @@ def test_sr1_update_meets_the_secant_equation():
 
 
 @pytest.mark.parametrize("kwargs, match", [
-    ({"steps": 0}, r"`tune_newton\(steps=\.\.\.\)` must be a positive int, got 0"),
+    ({"steps": 0}, r"`tune_newton\(steps=\.\.\.\)` must be an integer at least 1, got 0"),
     ({"radius": 0.0}, r"`tune_newton\(radius=\.\.\.\)` must be a positive number, got 0.0"),
     ({"radius": 1.0, "max_radius": 0.5},
      r"`tune_newton\(max_radius=\.\.\.\)` must be a number ≥ radius = 1.0, got 0.5"),
     ({"shrink": 1.0}, r"`tune_newton\(shrink=\.\.\.\)` must be a number in \(0, 1\), got 1.0"),
-    ({"hessian_every": 0}, r"`tune_newton\(hessian_every=\.\.\.\)` must be a positive int, got 0"),
+    ({"hessian_every": 0},
+     r"`tune_newton\(hessian_every=\.\.\.\)` must be an integer at least 1, got 0"),
     ({"hessian": "margin"},
      r"`tune_newton\(hessian=\.\.\.\)` must be 'full' or 'margins', got 'margin'"),
     ({"hessian": "margins", "hessian_every": 2},

@@ -8,6 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
+from jit_errors import CHECK_FAILED
 
 import fdjax
 
@@ -137,7 +138,7 @@ def test_filter_table_is_the_schedule_in_drive_units():
     with pytest.raises(ValueError, match=msg + ", got 400; table positions are in metres: "
                                              r"400 mm is 0\.4 m$"):
         sched.controller(400.0)
-    with pytest.raises(Exception, match=msg):
+    with pytest.raises(CHECK_FAILED, match=msg):
         eqx.filter_jit(lambda c, y: c.controller(y).mcm.peak.omega)(sched, jnp.asarray(400.0))
     with pytest.raises(ValueError, match=r"`ScheduledLoop.filter_table\(positions_m=\.\.\.\)` "
                                          r"must be inside the network's travel"):
@@ -313,3 +314,155 @@ def test_trained_gains_stay_finite_after_a_step_of_any_length():
     assert np.isfinite(float(value)) and np.isfinite(float(worst))
     g = jax.grad(lambda p: loss(p)[0])(params)
     assert all(np.all(np.isfinite(np.asarray(x))) for x in jax.tree_util.tree_leaves(g))
+
+
+# ------------------------------------------------------------------ input checks (audit fixes)
+def test_save_and_load_a_path_without_suffix(tmp_path):
+    """A path without a suffix takes .eqx on both sides, as equinox's serialisation does (the
+    schedule used to be written to ``s1`` and looked for in ``s1.eqx``); the JSON follows.
+    Leaves written without a suffix by the earlier fdjax still load."""
+    sched = fdjax.load_designs()[0]["mcm_ata_e2e"]
+    fdjax.save_schedule(tmp_path / "s1", sched)
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["s1.eqx", "s1.json"]
+    for path in (tmp_path / "s1", str(tmp_path / "s1"), tmp_path / "s1.eqx"):
+        assert bool(eqx.tree_equal(fdjax.load_schedule(path), sched))
+    # what the earlier save_schedule("old", ...) wrote: leaves at "old", JSON at "old.json"
+    with open(tmp_path / "old", "wb") as f:
+        eqx.tree_serialise_leaves(f, sched)
+    (tmp_path / "old.json").write_text((tmp_path / "s1.json").read_text())
+    assert bool(eqx.tree_equal(fdjax.load_schedule(tmp_path / "old"), sched))
+    missing = str(tmp_path / "nope.eqx")
+    with pytest.raises(FileNotFoundError,
+                       match=rf"^`load_schedule\(path=\.\.\.\)`: no file '{missing}'$"):
+        fdjax.load_schedule(tmp_path / "nope")
+
+
+def test_network_checks_its_position():
+    """``ATANetwork(Y)`` takes a real scalar inside its travel (it does not extrapolate): a
+    position in mm, NaN or a string used to be computed on.  Traced positions are checked by
+    ``eqx.error_if`` and compile once; the scheduled loop's own path is unchanged."""
+    net = fdjax.ATANetwork((0.1, 0.7), width=4, key=jax.random.PRNGKey(7))
+    msg = r"^`ATANetwork\(position_m=\.\.\.\)` must be inside the network's travel \[0\.1, 0\.7\] m"
+    with pytest.raises(ValueError, match=msg + r", got 300; table positions are in metres: "
+                                         r"300 mm is 0\.3 m$"):
+        net(300.0)
+    with pytest.raises(ValueError, match=msg + r", got nan$"):
+        net(jnp.nan)
+    with pytest.raises(TypeError, match=r"^`ATANetwork\(position_m=\.\.\.\)` must be a number or "
+                                        r"an array of numbers, got '0\.3'$"):
+        net("0.3")
+    with pytest.raises(ValueError, match=r"^`ATANetwork\(position_m=\.\.\.\)` must be a real "
+                                         r"scalar, got float64 of shape \(2,\)$"):
+        net([0.3, 0.4])
+
+    @eqx.filter_jit
+    @eqx.debug.assert_max_traces(max_traces=1)
+    def outputs(n, y):
+        return n(y)
+
+    np.testing.assert_array_equal(outputs(net, jnp.asarray(0.3)), net(0.3))
+    outputs(net, jnp.asarray(0.6))
+    with pytest.raises(CHECK_FAILED, match=msg[1:]):
+        jax.block_until_ready(outputs(net, jnp.asarray(300.0)))
+    np.testing.assert_allclose(jax.vmap(net)(jnp.asarray([0.1, 0.7]))[1], net(0.7), rtol=1e-14)
+    # the scheduled loop checks its position once (its message) and calls the network unchecked
+    sched = fdjax.ScheduledLoop(fdjax.DoubleLoop(), net, BOUNDS)
+    np.testing.assert_allclose(BOUNDS.from_mcm(sched.controller(0.45).mcm), net(0.45),
+                               rtol=1e-10, atol=1e-12)
+
+
+def test_fit_network_checks_its_designs():
+    """Positions in mm (inside the travel once read in metres), non-finite targets and no
+    designs at all used to train on (NaN weights, NaN loss); each is refused, naming
+    ``fit_network``, eagerly and under jit."""
+    net = fdjax.ATANetwork((0.1, 0.7), width=4, key=jax.random.PRNGKey(8))
+    y = np.array([0.2, 0.4, 0.6])
+    t = np.asarray(jax.vmap(net)(jnp.asarray(y)))
+    with pytest.raises(ValueError, match=r"^`fit_network\(positions_m=\.\.\.\)` must be inside "
+                                         r"the network's travel \[0\.1, 0\.7\] m, got 200 at "
+                                         r"index 0 and 2 more; table positions are in metres: "
+                                         r"200 mm is 0\.2 m$"):
+        fdjax.fit_network(net, y * 1000, t, steps=5)
+    bad = t.copy()
+    bad[1, 3] = np.nan
+    with pytest.raises(ValueError, match=r"^`fit_network\(targets=\.\.\.\)` must be finite \(no "
+                                         r"NaN or inf\), got nan at index \(1, 3\)$"):
+        fdjax.fit_network(net, y, bad, steps=5)
+    with pytest.raises(ValueError, match=r"^`fit_network\(positions_m=\.\.\., targets=\.\.\.\)` "
+                                         r"must have shapes \(n,\) and \(n, 7\) \(n ≥ 1 designs; 7 "
+                                         r"the network's outputs\), got \(0,\) and \(0, 7\)$"):
+        fdjax.fit_network(net, [], np.zeros((0, 7)), steps=5)
+    with pytest.raises(ValueError, match=r"^`fit_network\(steps=\.\.\.\)` must be an integer at "
+                                         r"least 1, got True$"):
+        fdjax.fit_network(net, y, t, steps=True)
+    fitted = eqx.filter_jit(lambda p: fdjax.fit_network(net, p, t, steps=1)[1])
+    assert np.isfinite(float(fitted(jnp.asarray(y))[0]))
+    with pytest.raises(CHECK_FAILED, match=r"`fit_network\(positions_m=\.\.\.\)` must be "
+                                              r"inside the network's travel \[0\.1, 0\.7\] m"):
+        jax.block_until_ready(fitted(jnp.asarray(y * 1000)))
+
+
+def test_network_travel_is_a_pair_of_numbers_in_metres():
+    """The network's travel goes through the drive's travel check (``travel_pair``): strings are
+    a TypeError, one number a ValueError, both naming ``ATANetwork(travel_m=...)`` (they used to
+    fail in float() or in unpacking); a travel in mm below zero is caught as well as above."""
+    with pytest.raises(TypeError, match=r"^`ATANetwork\(travel_m=\.\.\.\)` must be a \(min, max\) "
+                                        r"pair of numbers in m, got \('a', 'b'\)$"):
+        fdjax.ATANetwork(("a", "b"))
+    for travel, shown in (((0.1,), r"\(0\.1,\)"), (0.7, r"0\.7"),
+                          ((0.1, 0.4, 0.7), r"\(0\.1, 0\.4, 0\.7\)")):
+        with pytest.raises(ValueError, match=r"^`ATANetwork\(travel_m=\.\.\.\)` must be a "
+                                             rf"\(min, max\) pair of numbers in m, got {shown}$"):
+            fdjax.ATANetwork(travel)
+    with pytest.raises(ValueError, match=r"^`ATANetwork\(travel_m=\.\.\.\)` must be an increasing "
+                                         r"\(min, max\) pair in m, got \(nan, 0\.7\)$"):
+        fdjax.ATANetwork((np.nan, 0.7))
+    with pytest.raises(ValueError, match=r"^`ATANetwork\(travel_m=\.\.\.\)` must be a \(min, max\) "
+                                         r"pair in m, got \(-700\.0, -100\.0\); table positions "
+                                         r"are in metres: -700 mm is -0\.7 m$"):
+        fdjax.ATANetwork((-700.0, -100.0))
+    assert fdjax.ATANetwork(np.array([0.1, 0.7])).travel_m == (0.1, 0.7)
+
+
+def test_interpolated_loop_refuses_the_last_design_position_in_mm():
+    """700 (mm) for designs up to 0.7 m: 700 × 1e-3 rounds to 0.7000000000000001, past the last
+    design, so it used to be held at the end design; 700 / 1000 is 0.7 and it is refused."""
+    loop = fdjax.InterpolatedLoop(fdjax.DoubleLoop(), POSITIONS, _local_designs(), BOUNDS)
+    with pytest.raises(ValueError, match=r"^`InterpolatedLoop\.controller\(position_m=\.\.\.\)` "
+                                         r"must be a table position in metres \(the designs lie "
+                                         r"at 0\.1 … 0\.7 m\), got 700; 700 mm is 0\.7 m$"):
+        loop.controller(700.0)
+
+
+def test_tuning_objective_checks_its_arguments():
+    """(tuning_objective lives in fdjax._tune._synthesis; its checks are tested here.)  Each
+    argument is checked before the objective is built, naming ``tuning_objective``: a zero
+    width used to divide by zero, a string to fail in the division, a float servo in an
+    attribute lookup, and a negative width was reported as ``Objective(margin_width=...)``."""
+    cases = [
+        (dict(margin_width=0), ValueError,
+         r"`tuning_objective\(margin_width=\.\.\.\)` must be finite and positive, got 0"),
+        (dict(margin_width=-0.05), ValueError,
+         r"`tuning_objective\(margin_width=\.\.\.\)` must be finite and positive, got -0\.05"),
+        (dict(margin_width=np.nan), ValueError,
+         r"`tuning_objective\(margin_width=\.\.\.\)` must be finite and positive, got nan"),
+        (dict(margin_width="0.05"), TypeError,
+         r"`tuning_objective\(margin_width=\.\.\.\)` must be a number or an array of numbers, "
+         r"got '0\.05'"),
+        (dict(margin_width=[0.01, 0.05]), ValueError,
+         r"`tuning_objective\(margin_width=\.\.\.\)` must be a real scalar, got float64 of "
+         r"shape \(2,\)"),
+        (dict(servo=1.0), TypeError,
+         r"`tuning_objective\(servo=\.\.\.\)` must be an fdjax\.Servo, got float"),
+        (dict(feedforward="yes"), TypeError,
+         r"`tuning_objective\(feedforward=\.\.\.\)` must be a bool, got 'yes'"),
+        (dict(kept_modes=0), ValueError,
+         r"`tuning_objective\(kept_modes=\.\.\.\)` must be an integer between 1 and 29, got 0"),
+        (dict(kept_modes=6.0), ValueError,
+         r"`tuning_objective\(kept_modes=\.\.\.\)` must be an integer between 1 and 29, got 6\.0"),
+    ]
+    for kwargs, kind, match in cases:
+        with pytest.raises(kind, match="^" + match + "$"):
+            fdjax.tuning_objective(**kwargs)
+    assert float(fdjax.tuning_objective(margin_width=np.float32(0.01)).margin_sharpness) == \
+        pytest.approx(1000.0, rel=1e-6)

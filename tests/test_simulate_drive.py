@@ -11,6 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from jit_errors import CHECK_FAILED
 from table1 import table1_loop  # the Table 1 drive's hand-set double loop
 
 import fdjax
@@ -114,9 +115,9 @@ def test_instability_and_divergence_under_jit(drive, reference):
     run = jax.jit(lambda c, p, eb: fdjax.simulate(c, drive, reference, servo=SERVO,
                                                   position_m=p, duration=0.05, twin=twin,
                                                   error_bound=eb).x2)
-    with pytest.raises(Exception, match="the closed loop is unstable"):
+    with pytest.raises(CHECK_FAILED, match="the closed loop is unstable"):
         jax.block_until_ready(run(hot, Y_END, 0.01))
-    with pytest.raises(Exception, match="the closed-loop run diverged"):
+    with pytest.raises(CHECK_FAILED, match="the closed-loop run diverged"):
         jax.block_until_ready(run(soft, 0.4, 1e-7))
 
 
@@ -192,7 +193,8 @@ def test_moving_table(drive):
         servo=SERVO, position_m=0.3, duration=dur, moving=True, twin=TWIN8,
     )
     assert float(a.position_m[-1]) > 0.3 + 5e-4  # it did move
-    assert _rel(a.error_scale, b.error_scale) < 1e-5
+    # Kvaerno5 at rtol 1e-9 against the default solver: measured 3.8e-10
+    assert _rel(a.error_scale, b.error_scale) < 3e-9
 
 
 def test_shared_discretisation_is_the_loop_built_apart(drive, mcm):

@@ -23,6 +23,7 @@ import numpy as np
 import pytest
 import scipy.linalg
 import scipy.signal
+from jit_errors import CHECK_FAILED
 
 from fdjax._drive import table1_drive as reference_drive  # the twin checked on the Table 1 drive
 from fdjax._drive._twin import (
@@ -413,7 +414,7 @@ def test_bad_input():
                                          r"of kept modes"):
         jax.jit(lambda d, p: state_space(d, p).A)(drive, 0.3)
     jitted = jax.jit(lambda d, p: fe_matrices(d, p).stiffness)
-    with pytest.raises(Exception, match=r"`fe_matrices\(position_m=\.\.\.\)` must be inside"):
+    with pytest.raises(CHECK_FAILED, match=r"`fe_matrices\(position_m=\.\.\.\)` must be inside"):
         jax.block_until_ready(jitted(drive, 0.8))
-    with pytest.raises(Exception, match=r"`Screw\(loss_factor=\.\.\.\)` must be 0"):
+    with pytest.raises(CHECK_FAILED, match=r"`Screw\(loss_factor=\.\.\.\)` must be 0"):
         jax.block_until_ready(jitted(lossy, 0.3))

@@ -164,6 +164,14 @@ def test_certify_is_loop_margins_and_stability_at_each_position():
             cert.modulus_margin[k], min(float(L.modulus_margin) for L in loops), rtol=1e-9)
         np.testing.assert_allclose(
             cert.gain_margin_db[k], min(abs(float(L.gain_margin_db)) for L in loops), rtol=1e-9)
+        np.testing.assert_allclose(
+            cert.phase_margin_deg[k], min(abs(float(L.phase_margin_deg)) for L in loops),
+            rtol=1e-9)
+        kept = (bool(st.stable) and min(float(L.modulus_margin) for L in loops) >= 0.5
+                and min(abs(float(L.gain_margin_db)) for L in loops) >= 6.0
+                and min(abs(float(L.phase_margin_deg)) for L in loops) >= 30.0)
+        assert bool(cert.passed[k]) == kept, k
+    assert not cert.passed.all() and cert.passed.any()  # both verdicts are exercised here
     assert cert.ok == bool(np.all(cert.passed))
     assert ("certified at 3 positions" in cert.message) == cert.ok
     y_gm, v_gm = cert.worst("gain_margin_db")
@@ -227,7 +235,7 @@ def test_python_control_export_is_the_law_the_loop_runs():
 
 def test_synthesise_names_its_arguments():
     with pytest.raises(ValueError, match=r"`synthesise\(margin_width=\.\.\.\)` must be a "
-                                         r"positive number, got 0"):
+                                         r"finite positive number, got 0"):
         fdjax.synthesise(margin_width=0, progress=False)
     with pytest.raises(TypeError, match=r"`synthesise\(drive=\.\.\.\)` must be an fdjax"):
         fdjax.synthesise("drive.json", progress=False)
@@ -239,11 +247,14 @@ def test_synthesise_names_its_arguments():
                                          r"holds the paper's design positions 0\.1–0\.7 m"):
         fdjax.synthesise(short, progress=False)
     # the counts of every stage before the first one runs (the robust MCM's is the last)
-    for kwargs, match in (({"robust_steps": -1}, r"robust_steps=\.\.\.\)` must be an int ≥ 1, "
-                                                 r"got -1"),
-                          ({"e2e_positions": 1}, r"e2e_positions=\.\.\.\)` must be an int ≥ 2"),
-                          ({"local_steps": 2.5}, r"local_steps=\.\.\.\)` must be an int ≥ 1"),
+    for kwargs, match in (({"robust_steps": -1}, r"robust_steps=\.\.\.\)` must be an integer at "
+                                                 r"least 1, got -1"),
+                          ({"e2e_positions": 1},
+                           r"e2e_positions=\.\.\.\)` must be an integer at least 2"),
+                          ({"local_steps": 2.5},
+                           r"local_steps=\.\.\.\)` must be an integer at least 1"),
                           ({"simplex_evaluations": 13},
-                           r"simplex_evaluations=\.\.\.\)` must be an int ≥ 14, got 13")):
+                           r"simplex_evaluations=\.\.\.\)` must be an integer at least 14, "
+                           r"got 13")):
         with pytest.raises(ValueError, match=r"`synthesise\(" + match):
             fdjax.synthesise(progress=False, **kwargs)

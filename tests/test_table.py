@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from jit_errors import CHECK_FAILED
 from test_drive import check_rigid_asymptote  # rigid-body asymptote, independent J and c
 from test_statespace import normwise_error  # ‖H − H_ref‖₂/‖H_ref‖₂ in consistent units
 
@@ -243,5 +244,6 @@ def test_bad_input():
                                          r"None, got float"):
         fdjax.Carriage(mass=700.0, pitch_inertia=36.0, pitch_stiffness=5e6, table=400.0)
     # traced: the converter's check becomes an eqx.error_if on the stored leaf
-    with pytest.raises(Exception, match=r"`Table\(mass=\.\.\.\)` must be finite and positive"):
+    with pytest.raises(CHECK_FAILED,
+                       match=r"`Table\(mass=\.\.\.\)` must be finite and positive"):
         jax.block_until_ready(jax.jit(lambda m: fdjax.Table(mass=m, stiffness=K_T).mass)(-1.0))

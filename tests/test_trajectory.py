@@ -12,6 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from jit_errors import CHECK_FAILED
 from scipy.interpolate import PPoly
 
 from fdjax._trajectory import Trajectory, concatenate, jerk_limited, reciprocating
@@ -453,7 +454,8 @@ def test_errors_under_jit():
         return Trajectory(t_knots, jnp.ones(2, jnp.float64)).evaluate(0.5)[0]
 
     assert float(position(jnp.array([0.0, 1.0, 2.0]))) == pytest.approx(0.5**3 / 6, rel=1e-14)
-    with pytest.raises(Exception, match=r"Trajectory\(t_knots=\.\.\.\)` must be finite, non-decr"):
+    with pytest.raises(CHECK_FAILED,
+                       match=r"Trajectory\(t_knots=\.\.\.\)` must be finite, non-decr"):
         jax.block_until_ready(position(jnp.array([0.0, 1.0, 0.5])))
 
 
@@ -526,3 +528,21 @@ def test_position_range_under_jit_grad_and_no_retrace():
     # d(max r)/d(jerk scale c): r scales with c, so d hi/dc = hi − r0 at c = 1
     g = jax.grad(lambda c: Trajectory(traj.t_knots, c * traj.jerk, 0.1).position_range()[1])(1.0)
     np.testing.assert_allclose(float(g), 5e-3, rtol=1e-9)
+
+
+def test_a_move_in_mm_is_refused():
+    """A distance or stroke longer than any ball-screw axis (``LONGEST_TRAVEL_M`` = 20 m either
+    way) was given in mm: refused with its value in metres (300. used to plan a 300 m move).
+    Up to 20 m a move is planned as before; a value that is too long even in mm is refused
+    without the hint."""
+    msg = r" must be inside the longest travel of a ball-screw axis \[-20, 20\] m, got "
+    with pytest.raises(ValueError, match=r"^`jerk_limited\(distance=\.\.\.\)`" + msg +
+                       r"300; table positions are in metres: 300 mm is 0\.3 m$"):
+        jerk_limited(300.0, 0.1, 2.0, 200.0)
+    with pytest.raises(ValueError, match=r"^`reciprocating\(stroke=\.\.\.\)`" + msg +
+                       r"-25; table positions are in metres: -25 mm is -0\.025 m$"):
+        reciprocating(stroke=-25.0)
+    with pytest.raises(ValueError, match=r"^`jerk_limited\(distance=\.\.\.\)`" + msg + r"30000$"):
+        jerk_limited(3e4, 0.1, 2.0, 200.0)
+    rk, _, _ = jerk_limited(-20.0, 1.0, 2.0, 200.0, start=1.0).knot_states()
+    assert float(rk[-1]) == pytest.approx(-19.0, rel=1e-12)

@@ -10,6 +10,7 @@ import numpy as np
 import optax
 import pytest
 from compile_events import compilations
+from jit_errors import CHECK_FAILED
 
 import fdjax
 
@@ -77,7 +78,7 @@ def test_saturated_theta_reads_back_and_bad_filters_raise_under_jit():
     with pytest.raises(ValueError, match=r"must be a filter with the peak gain K inside "
                                          r"\[0\.001, 10\], got 100"):
         BOUNDS.from_mcm(bad)
-    with pytest.raises(Exception, match=r"the peak gain K inside \[0\.001, 10\]"):
+    with pytest.raises(CHECK_FAILED, match=r"the peak gain K inside \[0\.001, 10\]"):
         jax.block_until_ready(eqx.filter_jit(BOUNDS.from_mcm)(bad))
 
 @pytest.mark.parametrize("scale", [1.0, 30.0, 1e3])
@@ -87,7 +88,7 @@ def test_every_theta_is_admissible(scale):
         mcm = BOUNDS.to_mcm(jnp.asarray(theta))
         _admissible(mcm)
         assert np.all(np.isfinite(np.asarray(mcm.frf(np.array([10.0, 131.0, 3000.0])))))
-    mcm.discretize(T)  # the discretisation's own Nyquist check passes
+        mcm.discretize(T)  # the discretisation's own Nyquist check passes
 
 
 def test_gains_stay_finite_and_positive_for_every_finite_theta():
@@ -207,7 +208,8 @@ def test_gain_margin_penalty_counts_both_directions_as_the_exact_margin_does():
     r = np.exp(np.interp(t, [0.0, 0.25, 0.75, 1.0], np.log([20.0, 10.0, 0.25, 0.1])))
     L = -r * np.exp(0.8j * np.sin(2 * np.pi * (t - 0.25)))
     m = fdjax.stability_margins(np.linspace(1.0, 100.0, t.size), L)
-    np.testing.assert_allclose(float(m.gain_margin_db), 20 * np.log10(4.0), rtol=1e-3)
+    # the crossing at t = 1/4 is a grid point, where the interpolant is exact
+    np.testing.assert_allclose(float(m.gain_margin_db), 20 * np.log10(4.0), rtol=1e-12)
     assert float(np.min(gain_distance(L, 6.0))) > 0.15  # measured 0.171
     # the gain and phase terms (the modulus requirement dropped): measured 0.005; a crossing
     # inside the segment costs at least (ln 2)²
@@ -283,7 +285,8 @@ def test_objective_is_finite_penalising_and_differentiable():
     for i in (0, 1, 2, 4, 5, 8, 10):
         fd = (float(J(theta0.at[i].add(h), 0.3).total)
               - float(J(theta0.at[i].add(-h), 0.3).total)) / (2 * h)
-        np.testing.assert_allclose(g[i], fd, rtol=1e-4, atol=1e-6 * np.max(np.abs(g)))
+        # measured 1e-10–6.4e-8 (θ5): central differences' truncation at h = 1e-5
+        np.testing.assert_allclose(g[i], fd, rtol=5e-7, atol=1e-8 * np.max(np.abs(g)))
     # the margin term is margin_penalty of the three open loops, with the objective's width
     # and sharpness (here the sharp penalties of tuning_objective: w = 0.01, β = 10/w)
     sharp = dataclasses.replace(obj, margin_width=0.01, margin_sharpness=1000.0)

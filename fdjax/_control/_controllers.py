@@ -190,6 +190,13 @@ class AbstractController(eqx.Module):
     def law(self, position_m: Float[Array, ""]) -> Law:
         """The law at table position ``position_m`` (m; a fixed controller ignores it)."""
 
+    def check_position(self, position_m, where: str):
+        """The table positions (m) the controller is asked to run at, checked: a fixed
+        controller runs anywhere and returns them as they are; a scheduled one checks them
+        against the positions it was built for (eagerly where they are concrete, naming
+        ``where``, the caller's argument) and requires them (``None`` is refused)."""
+        return position_m
+
 
 def _log_positive(value, where: str) -> Array:
     return jnp.log(_checks.positive(_checks.real_scalar(value, where), where))

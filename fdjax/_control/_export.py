@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 
-from .._checks import LONGEST_TRAVEL_M, concrete_float, instance
+from .._checks import LONGEST_TRAVEL_M, concrete_float, instance, static_bool
 from ._blocks import FILTER_METHODS
 from ._controllers import LAW_SIGNALS, AbstractController
 from ._interconnect import realise_law
@@ -37,6 +37,7 @@ def to_python_control(controller: AbstractController, position_m=None, *,
     if filter_method not in FILTER_METHODS:
         raise ValueError(f"`{fn}(filter_method=...)` must be one of {FILTER_METHODS}, got "
                          f"{filter_method!r}")
+    discrete = static_bool(discrete, f"{fn}(discrete=...)")
     instance(servo, Servo, f"{fn}(servo=...)")
     if position_m is not None:
         where = f"{fn}(position_m=...)"

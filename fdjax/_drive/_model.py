@@ -40,15 +40,36 @@ INPUTS = ("T1", "F3")
 """Input coordinates of H_M: motor torque (N·m), disturbance force at the tool point (N)."""
 
 
-def _travel(value) -> tuple[float, float]:
-    """``travel_m`` as a pair of Python floats (a static field: hashable, compared by value)."""
-    where = "BallScrewDrive(travel_m=...)"
+def travel_pair(value, where: str) -> tuple[float, float]:
+    """A travel ``value`` as a (min, max) pair of Python floats in m (a static field: hashable,
+    compared by value), checked: two concrete numbers (else a ``TypeError`` when they are not
+    numbers, a ``ValueError`` when it is not a pair), finite and increasing, and neither beyond
+    :data:`fdjax._checks.LONGEST_TRAVEL_M` (a travel given in millimetres: the message says
+    so, with the value in metres).  ``where`` is the argument in call syntax, e.g.
+    ``"BallScrewDrive(travel_m=...)"``."""
+    pair = "a (min, max) pair of numbers in m"
     try:
-        lo, hi = (_checks.concrete_float(v, where) for v in value)
-    except (TypeError, ValueError) as err:
-        raise ValueError(f"`{where}` must be a (min, max) pair of numbers in m, got "
-                         f"{value!r}") from err
+        lo, hi = value
+    except (TypeError, ValueError):  # a number, three numbers, ...
+        raise ValueError(f"`{where}` must be {pair}, got {value!r}") from None
+    try:
+        lo, hi = (_checks.concrete_float(v, where) for v in (lo, hi))
+    except TypeError:  # a string or another object that is not a number
+        raise TypeError(f"`{where}` must be {pair}, got {value!r}") from None
+    except ValueError:  # an array, a complex or a traced value
+        raise ValueError(f"`{where}` must be {pair}, got {value!r}") from None
+    if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
+        raise ValueError(f"`{where}` must be an increasing (min, max) pair in m, got {value!r}")
+    far = hi if abs(hi) >= abs(lo) else lo
+    if abs(far) > _checks.LONGEST_TRAVEL_M:  # no ball-screw axis is that long: given in mm
+        raise ValueError(f"`{where}` must be a (min, max) pair in m, got {value!r}; table "
+                         f"positions are in metres: {far:.6g} mm is {far * 1e-3:.6g} m")
     return (lo, hi)
+
+
+def _travel(value) -> tuple[float, float]:
+    """``BallScrewDrive``'s ``travel_m`` converter (:func:`travel_pair`)."""
+    return travel_pair(value, "BallScrewDrive(travel_m=...)")
 
 
 class BallScrewDrive(eqx.Module):
@@ -61,8 +82,12 @@ class BallScrewDrive(eqx.Module):
         carriage: subsystem S (carriage axial + pitch; nut, scale and tool heights; an
             optional :class:`fdjax.Table` carrying the tool point).
         nut: the screw–nut joint (k_ja, c_ja).
-        nut_offset: l0 (m): the nut sits at l = Y_table + l0 from the drive-end bearing.
-        travel_m: (min, max) table position Y_table (m), static.
+        nut_offset: l0 (m): the nut sits at l = Y_table + l0 from the drive-end bearing
+            (refused when the nut would leave the screw on the travel; an offset of 1
+            or more, longer than the screw, that fits once read in mm is refused with
+            its value in metres).
+        travel_m: (min, max) table position Y_table (m), static; neither beyond
+            ``LONGEST_TRAVEL_M`` = 20 m (:func:`travel_pair`).
 
     Every public method checks its inputs (positions inside the travel, finite frequencies)
     and its result (finite): eagerly as a ``ValueError``, under ``jit``/``vmap``/``grad`` as an
@@ -79,21 +104,20 @@ class BallScrewDrive(eqx.Module):
                                               converter=_travel)
 
     def __check_init__(self):
-        lo, hi = self.travel_m
-        if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
-            raise ValueError(
-                f"`BallScrewDrive(travel_m=...)` must be an increasing (min, max) pair, "
-                f"got {self.travel_m}"
-            )
-        if hi > _checks.LONGEST_TRAVEL_M:  # a travel given in millimetres
-            raise ValueError(
-                f"`BallScrewDrive(travel_m=...)` must be a (min, max) pair in m, got "
-                f"{self.travel_m}; table positions are in metres: {hi:.6g} mm is "
-                f"{hi * 1e-3:.6g} m"
-            )
+        lo, hi = self.travel_m  # a checked pair (`travel_pair`, the field's converter)
         if _checks.is_concrete(self.nut_offset) and _checks.is_concrete(self.screw.length):
             l0, L = float(self.nut_offset), float(self.screw.length)
             if not (lo + l0 > 0 and hi + l0 < L):
+                # an offset longer than the screw that fits once read in mm (and is a
+                # millimetre or more, not a metre value slightly off): given in mm
+                mm = abs(l0) > L and abs(l0) >= 1.0
+                if mm and lo + l0 / 1000 > 0 and hi + l0 / 1000 < L:
+                    raise ValueError(
+                        f"`BallScrewDrive(nut_offset=...)` must keep the nut strictly inside "
+                        f"the screw (0, {L:.6g}) m over the travel [{lo:.6g}, {hi:.6g}] m, got "
+                        f"{l0:.6g} (nut positions [{lo + l0:.6g}, {hi + l0:.6g}] m)"
+                        f"{_checks.mm_hint(l0)}"
+                    )
                 raise ValueError(
                     f"`BallScrewDrive(travel_m=..., nut_offset=...)` must keep the nut strictly "
                     f"inside the screw (0, {L:.6g}) m, got nut positions "
@@ -142,6 +166,9 @@ class BallScrewDrive(eqx.Module):
         name of its argument."""
         where = f"{fn}({param}=...)"
         pos = _checks.real_array(position_m, where)
+        if pos.size == 0:
+            raise ValueError(f"`{where}` must hold at least one table position, got shape "
+                             f"{pos.shape}")
         lo, hi = self.travel_m
         pos = _checks.inside(pos, lo, hi, where)
         # The nut stays inside the screw for every position of the travel when the drive was

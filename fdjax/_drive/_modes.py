@@ -167,10 +167,8 @@ def track_drive_modes(
     """
     from .._modal import _track
 
-    if not isinstance(modes, DriveModes):
-        raise ValueError(
-            f"`track_drive_modes(modes=...)` must be a DriveModes, got {type(modes).__name__}"
-        )
+    _checks.instance(modes, DriveModes, "track_drive_modes(modes=...)",
+                     "an fdjax.DriveModes (from fdjax.drive_modes)")
     freq_tol = _checks.positive(
         _checks.real_scalar(freq_tol, "track_drive_modes(freq_tol=...)"),
         "track_drive_modes(freq_tol=...)",

@@ -47,6 +47,24 @@ def _nut_point(shaft: Rod, l, where: str) -> Array:
     return eqx.error_if(l, ~ok, f"`{where}` must be strictly inside (0, L) m")
 
 
+LARGEST_SCREW_DIAMETER_M = 1.0
+"""No ball screw is thicker (the largest catalogue screws are about 0.2 m): a screw's diameter
+or bore beyond it (m) was given in mm."""
+
+LARGEST_LEAD_M = 0.5
+"""No ball screw has a longer lead (the longest catalogue leads are about 0.1–0.2 m per
+revolution): a lead beyond it (m) was given in mm."""
+
+
+_SCREW_SIZES = (
+    ("length", _checks.LONGEST_TRAVEL_M, "no ball screw is longer"),
+    ("diameter", LARGEST_SCREW_DIAMETER_M, "no ball screw is thicker"),
+    ("bore_diameter", LARGEST_SCREW_DIAMETER_M, "no ball screw is thicker"),
+    ("lead", LARGEST_LEAD_M, "per revolution; no ball screw has a longer lead"),
+)
+"""The plausibility limits of :class:`Screw` (field, most in m, why)."""
+
+
 def tridiagonal_dense(diag, off) -> Complex[Array, "... n n"]:
     """Dense symmetric tridiagonal matrix from diagonal/off-diagonal lists (broadcast)."""
     n = len(diag)
@@ -72,6 +90,12 @@ class Screw(eqx.Module):
         youngs_modulus: E (Pa).  shear_modulus: G (Pa).  density: ρ (kg/m³).
         retardation: Kelvin–Voigt retardation time β (s) of the screw material.
         loss_factor: hysteretic loss factor η (frequency domain only).
+
+    Lengths are in metres.  A concrete length, diameter or bore, or lead beyond what any
+    ball screw has (L > ``LONGEST_TRAVEL_M`` = 20 m, d or d_i > ``LARGEST_SCREW_DIAMETER_M``
+    = 1 m, p > ``LARGEST_LEAD_M`` = 0.5 m) is refused, with the value in metres when it was
+    given in millimetres (850 mm is 0.85 m); traced values (inside ``jit``/``vmap``) are
+    checked finite and positive only.
     """
 
     length: Float[Array, ""] = _checks.positive_field("Screw(length=...)")
@@ -91,6 +115,9 @@ class Screw(eqx.Module):
     loss_factor: Float[Array, ""] = _checks.nonnegative_field("Screw(loss_factor=...)", default=0.0)
 
     def __check_init__(self):
+        # lengths in metres: a concrete value beyond what any ball screw has was given in mm
+        for name, limit, reason in _SCREW_SIZES:
+            _checks.at_most(getattr(self, name), limit, f"Screw({name}=...)", reason)
         d, di = self.diameter, self.bore_diameter
         if _checks.is_concrete(d) and _checks.is_concrete(di) and not float(di) < float(d):
             raise ValueError(

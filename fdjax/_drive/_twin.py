@@ -622,5 +622,8 @@ def state_space(
     twin = _twin_options(twin, "state_space")
     drive, pos = _check_inputs(drive, position_m, "state_space")
     m = twin.modes_for(drive, "state_space")
-    return _realise_jit(drive, pos, int(twin.n_elements), m, bool(twin.residual),
-                        bool(twin.nut_correction))
+    ss = _realise_jit(drive, pos, int(twin.n_elements), m, bool(twin.residual),
+                      bool(twin.nut_correction))
+    if _checks.is_concrete(ss.A):  # eager: a drive with non-physical values says so here
+        _checks.finite_tree([ss.A, ss.B, ss.C, ss.D], "state_space")
+    return ss

@@ -25,7 +25,16 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import ArrayLike, Complex, Float
 
-from .._checks import finite, frequency_grid, is_concrete, numeric, positive, static_int, to_complex
+from .._checks import (
+    finite,
+    frequency_grid,
+    is_concrete,
+    numeric,
+    positive,
+    static_bool,
+    static_int,
+    to_complex,
+)
 from .._sweep import map_positions
 from ._fit import _TWO_PI, ModalFit, _wrap_phase_deg
 from ._linear import _cplx, _linear_fit, _real_residues
@@ -276,6 +285,11 @@ def identify_modes(
     **Returns:** a :class:`ModalFit`.
     """
     if n_modes is None or isinstance(initial, StabilisationDiagram):
+        if not all(is_concrete(x) for x in (freq_hz, frf, weights) if x is not None):
+            raise ValueError(
+                "`identify_modes(n_modes=...)` is required inside jit, vmap or grad: choosing "
+                "the model order (the stabilisation diagram) runs eagerly, on concrete data"
+            )
         return _identify_auto(
             freq_hz, frf, n_modes, rigid_body=rigid_body,
             real_poles=1 if real_poles is None else real_poles, upper_residual=upper_residual,
@@ -283,6 +297,8 @@ def identify_modes(
             solver=solver, max_steps=max_steps, throw=throw,
         )
     real_poles = 0 if real_poles is None else real_poles
+    refine = static_bool(refine, "identify_modes(refine=...)")
+    throw = static_bool(throw, "identify_modes(throw=...)")
     freq_hz, frf, weights, n_modes, static = _check_inputs(
         "identify_modes", 0, freq_hz, frf, n_modes, rigid_body, upper_residual, weights,
         initial, vf_iterations, vf_extra_modes, max_steps, real_poles,
@@ -340,7 +356,7 @@ def _check_inputs(where, n_batch, freq_hz, frf, n_modes, rigid_body, upper_resid
                              f"frequency, got one at {at} (flattened output × input index)")
     rigid_body = static_int(rigid_body, f"{where}(rigid_body=...)", 0, 2)
     if not isinstance(upper_residual, bool):
-        raise ValueError(f"`{where}(upper_residual=...)` must be a bool, got {upper_residual!r}")
+        raise TypeError(f"`{where}(upper_residual=...)` must be a bool, got {upper_residual!r}")
     real_poles = static_int(real_poles, f"{where}(real_poles=...)", 0)
     n_fixed = rigid_body + int(upper_residual) + real_poles
     vf_iterations = static_int(vf_iterations, f"{where}(vf_iterations=...)", 0)

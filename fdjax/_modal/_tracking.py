@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array
 
-from .._checks import positive, real_scalar
+from .._checks import instance, positive, real_scalar
 from ._fit import ModalFit
 
 
@@ -112,8 +112,8 @@ def track_modes(
     Returns the same ``ModalFit`` with ``frequency_hz``, ``damping_ratio``, ``phase_deg``,
     ``residues`` and ``poles`` permuted per position; other fields are unchanged.
     """
-    if not isinstance(fits, ModalFit):
-        raise ValueError(f"`track_modes(fits=...)` must be a ModalFit, got {type(fits)}")
+    instance(fits, ModalFit, "track_modes(fits=...)",
+             "an fdjax.ModalFit (from fdjax.identify_modes_batched)")
     if fits.frequency_hz.ndim != 2:
         raise ValueError(
             "`track_modes(fits=...)` must be a batch over positions with frequency_hz of "

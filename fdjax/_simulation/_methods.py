@@ -37,6 +37,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from .._checks import static_number
 from .._control._blocks import DEFAULT_PADE_ORDER, FILTER_METHODS, pade_order
 from .._control._interconnect import (
     SampledParts,
@@ -144,7 +145,9 @@ class SampledData(AbstractLoopModel):
                  "an fdjax.StateSpace (the twin at one position: fdjax.state_space(drive, "
                  "position_m))")
         instance(servo, Servo, "SampledData.sharing(servo=...)")
-        return eqx.tree_at(lambda m: m.shared, self, self.parts(controller, plant, servo),
+        # compiled (once per shapes), so that an eager call does not run the matrix
+        # exponential's loops op by op
+        return eqx.tree_at(lambda m: m.shared, self, _parts(self, controller, plant, servo),
                            is_leaf=lambda x: x is None)
 
     def closed_loop(self, controller, plant, servo) -> LTI:
@@ -425,11 +428,7 @@ class PadeODE(AbstractLoopModel):
 
     def __check_init__(self):
         if self.dt is not None:
-            p = self.dt
-            if isinstance(p, bool) or not isinstance(p, int | float) or not (
-                math.isfinite(p) and p > 0
-            ):
-                raise ValueError(f"`PadeODE(dt=...)` must be a positive number, got {p!r}")
+            static_number(self.dt, "PadeODE(dt=...)", lambda v: v > 0, "a positive number")
         pade_order(self.pade_order, "PadeODE(pade_order=...)")
         if self.solver is None or isinstance(self.solver, ExponentialFOH):
             if isinstance(self.adjoint, diffrax.BacksolveAdjoint):
@@ -515,3 +514,8 @@ class PadeODE(AbstractLoopModel):
         C, D = jax.vmap(lambda tk: term.system(tk)[2:4])(t)
         Y = jnp.einsum("kon,kn->ko", C, X) + jnp.einsum("koi,ki->ko", D, W)
         return self._result(sol, X, Y, W, bound)
+
+
+@eqx.filter_jit
+def _parts(model: SampledData, controller, plant, servo) -> SampledParts:
+    return model.parts(controller, plant, servo)

@@ -81,7 +81,8 @@ class Simulation(eqx.Module):
 
     def rms_error(self, which: str = "scale") -> Float[Array, "*batch"]:
         """RMS tracking error (m) over the run: ``"scale"`` (r − x2) or ``"tool"`` (r − x3)."""
-        e = {"scale": self.error_scale, "tool": self.error_tool}.get(which)
+        errors = {"scale": self.error_scale, "tool": self.error_tool}
+        e = errors.get(which) if isinstance(which, str) else None
         if e is None:
             raise ValueError(
                 f"`Simulation.rms_error(which=...)` must be 'scale' or 'tool', got {which!r}"
@@ -185,6 +186,8 @@ def simulate(
     _checks.instance(controller, AbstractController, f"{fn}(controller=...)",
                      "an fdjax controller (DoubleLoop, PIDLoop or a subclass of "
                      "fdjax.AbstractController)")
+    throw = _checks.static_bool(throw, f"{fn}(throw=...)")
+    controller = _checks.finite_parameters(controller, f"{fn}(controller=...)", traced=throw)
     _checks.instance(servo, Servo, f"{fn}(servo=...)")
     if not callable(getattr(method, "run", None)):
         raise TypeError(
@@ -234,6 +237,7 @@ def simulate(
             raise ValueError(f"`{fn}(position_m=...)` is required when the plant is a drive")
         pos0 = _checks.real_scalar(position_m, f"{fn}(position_m=...)")
         pos0 = plant._check_travel(pos0, fn)
+        pos0 = controller.check_position(pos0, f"{fn}(position_m=...)")
         lo, hi = plant.travel_m
         twin = twin.resolve(plant, fn)
         travel = (float(lo), float(hi))

@@ -223,9 +223,11 @@ def certify(
     if positions_m is None:
         positions_m = np.linspace(lo, hi, int(round((hi - lo) / 1e-3)) + 1)
     y = np.atleast_1d(np.asarray(real_array(positions_m, f"{fn}(positions_m=...)")))
-    if y.ndim != 1:
-        raise ValueError(f"`{fn}(positions_m=...)` must be 1-D, got shape {y.shape}")
+    if y.ndim != 1 or y.size == 0:
+        raise ValueError(f"`{fn}(positions_m=...)` must be a 1-D array of at least one "
+                         f"position, got shape {y.shape}")
     y = np.asarray(drive._check_travel(y, fn, "positions_m"))
+    y = np.asarray(controller.check_position(y, f"{fn}(positions_m=...)"))
     f = default_grid(servo) if freq_hz is None else np.asarray(freq_hz, float)
     twin = (TwinOptions() if twin is None else twin).resolve(drive, fn)
     release()

@@ -132,9 +132,9 @@ def train_schedule(
     _checks.instance(objective, Objective, f"{fn}(objective=...)")
     _checks.instance(drive, BallScrewDrive, f"{fn}(drive=...)")
     objective = objective.resolved(drive, fn)
-    for name, value, least in (("steps", steps, 1), ("batch", batch, 2), ("chunk", chunk, 1)):
-        if not (isinstance(value, int) and value >= least):
-            raise ValueError(f"`{fn}({name}=...)` must be an int ≥ {least}, got {value!r}")
+    steps, batch, chunk = (_checks.static_int(value, f"{fn}({name}=...)", least)
+                           for name, value, least in (("steps", steps, 1), ("batch", batch, 2),
+                                                      ("chunk", chunk, 1)))
     sharpness = _checks.static_positive(sharpness, f"{fn}(sharpness=...)")
     spec = jax.tree_util.tree_map(lambda _: False, schedule)
     spec = eqx.tree_at(lambda s: s.network, spec,

@@ -227,8 +227,7 @@ def _check_common(fn, parameterisation, objective, drive, positions_m, steps, ch
     lo, hi = drive.travel_m
     _checks.inside(pos, lo, hi, f"{fn}(positions_m=...)")
     for name, value in (("steps", steps), ("chunk", chunk)):
-        if not (isinstance(value, int) and value >= 1):
-            raise ValueError(f"`{fn}({name}=...)` must be a positive int, got {value!r}")
+        _checks.static_int(value, f"{fn}({name}=...)", 1)
     return pos, objective.resolved(drive, fn)
 
 
@@ -277,6 +276,8 @@ class RobustTuning(eqx.Module):
         terms: the objective's terms at ``best_theta`` at each position.
         seconds: wall time of the steps after the first chunk, which compiles (s; 0.0 for a
             run of one chunk).
+        evaluations: evaluations of the objective with its gradient at every position at
+            every step, (steps,): 1 for Adam, the line search's trials for L-BFGS.
     """
 
     positions_m: Float[Array, " n"]
@@ -286,6 +287,7 @@ class RobustTuning(eqx.Module):
     worst: Float[Array, " steps"]
     terms: ObjectiveTerms
     seconds: float = eqx.field(static=True)
+    evaluations: Int[Array, " steps"] | None = None
 
 
 class _RobustLoss(eqx.Module):
@@ -335,7 +337,8 @@ def tune_robust(
     y = jnp.asarray(pos)
     c = parameterisation.to_controller(res.best)
     terms = jax.vmap(lambda p: objective(c, drive, p))(y)
-    return RobustTuning(y, res.params, res.best, res.history, res.aux, terms, res.seconds)
+    return RobustTuning(y, res.params, res.best, res.history, res.aux, terms, res.seconds,
+                        res.evaluations)
 
 
 class Descent(eqx.Module):
@@ -458,9 +461,7 @@ def tune_shared_gains(
                                    steps, chunk)
     theta = _start(fn, parameterisation, start, pos.size)
     n_par = theta.shape[1]
-    if not (isinstance(n_shared, int) and 0 < n_shared < n_par):
-        raise ValueError(f"`{fn}(n_shared=...)` must be an int in [1, {n_par - 1}], got "
-                         f"{n_shared!r}")
+    n_shared = _checks.static_int(n_shared, f"{fn}(n_shared=...)", 1, n_par - 1)
     sharpness = _checks.static_positive(sharpness, f"{fn}(sharpness=...)")
     params = (jnp.mean(theta[:, :n_shared], axis=0), theta[:, n_shared:])
     loss = _SharedGainsLoss(parameterisation, objective, drive, jnp.asarray(pos), n_shared,
@@ -474,4 +475,5 @@ def tune_shared_gains(
     best = rows(res.best)
     y = jnp.asarray(pos)
     terms = _terms_at(parameterisation, objective, drive, best, y)
-    return LocalTuning(y, rows(res.params), best, res.aux, terms, res.seconds)
+    evaluations = jnp.broadcast_to(res.evaluations[:, None], (steps, pos.size))
+    return LocalTuning(y, rows(res.params), best, res.aux, terms, res.seconds, evaluations)

@@ -243,11 +243,8 @@ def tune_newton(
             ("radius", radius, lambda v: v > 0, "a positive number"),
             ("max_radius", max_radius, lambda v: v >= radius, f"a number ≥ radius = {radius!r}"),
             ("shrink", shrink, lambda v: 0 < v < 1, "a number in (0, 1)")):
-        if not (isinstance(value, (int, float)) and np.isfinite(value) and ok(value)):
-            raise ValueError(f"`{fn}({name}=...)` must be {want}, got {value!r}")
-    if not (isinstance(hessian_every, int) and hessian_every >= 1):
-        raise ValueError(f"`{fn}(hessian_every=...)` must be a positive int, got "
-                         f"{hessian_every!r}")
+        _checks.static_number(value, f"{fn}({name}=...)", ok, want)
+    hessian_every = _checks.static_int(hessian_every, f"{fn}(hessian_every=...)", 1)
     if hessian not in ("full", "margins"):
         raise ValueError(f"`{fn}(hessian=...)` must be 'full' or 'margins', got {hessian!r}")
     split = hessian == "margins"

@@ -30,7 +30,14 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from .._checks import check, concrete_float, instance, is_concrete
+from .._checks import (
+    check,
+    concrete_float,
+    instance,
+    is_concrete,
+    static_bool,
+    static_number,
+)
 from .._control import DoubleLoop, PIDLoop
 from .._control._controllers import AbstractController
 from .._control._servo import Servo
@@ -151,16 +158,10 @@ class MCMBounds(eqx.Module):
         _pair(self.peak_gain, "MCMBounds(peak_gain=...)")
         _pair(self.peak_damping, "MCMBounds(peak_damping=...)")
         _pair(self.notch_damping, "MCMBounds(notch_damping=...)")
-        if not (0.0 < float(self.peak_phase_max) <= math.pi):
-            raise ValueError(
-                f"`MCMBounds(peak_phase_max=...)` must be in (0, π] rad, got "
-                f"{float(self.peak_phase_max):.6g}"
-            )
-        if not (0.0 < float(self.notch_depth_min) < 1.0):
-            raise ValueError(
-                f"`MCMBounds(notch_depth_min=...)` must be in (0, 1), got "
-                f"{float(self.notch_depth_min):.6g}"
-            )
+        static_number(self.peak_phase_max, "MCMBounds(peak_phase_max=...)",
+                      lambda v: 0.0 < v <= math.pi, "a number in (0, π] rad")
+        static_number(self.notch_depth_min, "MCMBounds(notch_depth_min=...)",
+                      lambda v: 0.0 < v < 1.0, "a number in (0, 1)")
 
     @classmethod
     def for_servo(cls, servo: Servo, *, nyquist_fraction: float = 0.9,
@@ -168,13 +169,15 @@ class MCMBounds(eqx.Module):
         """Bounds for a servo: filter frequencies from ``freq_min_hz`` up to
         ``nyquist_fraction`` of its Nyquist frequency; other bounds as the defaults or
         ``kwargs``."""
-        instance(servo, Servo, "MCMBounds.for_servo(servo=...)")
-        if not (0.0 < nyquist_fraction < 1.0):
-            raise ValueError(
-                f"`MCMBounds.for_servo(nyquist_fraction=...)` must be in (0, 1), got "
-                f"{nyquist_fraction!r}"
-            )
+        fn = "MCMBounds.for_servo"
+        instance(servo, Servo, f"{fn}(servo=...)")
+        nyquist_fraction = static_number(nyquist_fraction, f"{fn}(nyquist_fraction=...)",
+                                         lambda v: 0.0 < v < 1.0, "a number in (0, 1)")
         hi = nyquist_fraction * 0.5 / float(servo.period)
+        freq_min_hz = static_number(freq_min_hz, f"{fn}(freq_min_hz=...)",
+                                    lambda v: 0.0 < v < hi,
+                                    f"a positive number below the filters' highest "
+                                    f"frequency {hi:.6g} Hz")
         return cls(period=float(servo.period), freq_hz=(freq_min_hz, hi), **kwargs)
 
     @property
@@ -280,6 +283,7 @@ class DoubleLoopParameterisation(AbstractParameterisation):
     def __init__(self, mcm: MCMBounds, reference: DoubleLoop | None = None, *,
                  feedforward: bool = True):
         instance(mcm, MCMBounds, "DoubleLoopParameterisation(mcm=...)")
+        feedforward = static_bool(feedforward, "DoubleLoopParameterisation(feedforward=...)")
         ref = DoubleLoop() if reference is None else reference
         instance(ref, DoubleLoop, "DoubleLoopParameterisation(reference=...)")
         vals = [ref.kp, ref.kv, ref.ki, ref.k_ffv, ref.k_ffa]

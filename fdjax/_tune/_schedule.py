@@ -18,7 +18,8 @@ double loop with MCM(Y), so it runs through every path of the control architectu
 stability, both simulations.
 
 :func:`save_schedule` / :func:`load_schedule` store a schedule as its leaves
-(``eqx.tree_serialise_leaves``) beside a JSON file of its hyperparameters and units.
+(``eqx.tree_serialise_leaves``; a path without a suffix takes ``.eqx``) beside a JSON file of
+its hyperparameters and units (the path with suffix ``.json``).
 """
 
 from __future__ import annotations
@@ -37,6 +38,7 @@ from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
 from .. import _checks
 from .._control._controllers import AbstractController, DoubleLoop, Law
+from .._drive._model import travel_pair
 from .._filters import MCM
 from ._optimisers import default_optimiser
 from ._parameterisation import LOG_GAIN_LIMIT, MCM_PARAMETERS, MCMBounds
@@ -68,20 +70,9 @@ class ATANetwork(eqx.Module):
 
     def __init__(self, travel_m: tuple[float, float], *, width: int = 8, gains: bool = False,
                  key: PRNGKeyArray | None = None):
-        lo, hi = (float(v) for v in travel_m)
-        if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
-            raise ValueError(
-                f"`ATANetwork(travel_m=...)` must be an increasing (min, max) pair in m, got "
-                f"{travel_m!r}"
-            )
-        if hi > _checks.LONGEST_TRAVEL_M:  # no ball screw is that long: a travel given in mm
-            raise ValueError(
-                f"`ATANetwork(travel_m=...)` must be a (min, max) pair in m, got {travel_m!r}; "
-                f"table positions are in metres: {hi:.6g} mm is {hi * 1e-3:.6g} m"
-            )
+        lo, hi = travel_pair(travel_m, "ATANetwork(travel_m=...)")
         width = _checks.static_int(width, "ATANetwork(width=...)", 1, 256)
-        if not isinstance(gains, bool):
-            raise TypeError(f"`ATANetwork(gains=...)` must be a bool, got {gains!r}")
+        gains = _checks.static_bool(gains, "ATANetwork(gains=...)")
         key = jax.random.PRNGKey(0) if key is None else key
         n_out = len(MCM_PARAMETERS) + (len(GAIN_OUTPUTS) if gains else 0)
         self.mlp = eqx.nn.MLP(1, n_out, width, 2, activation=jax.nn.sigmoid,
@@ -101,8 +92,19 @@ class ATANetwork(eqx.Module):
         return MCM_PARAMETERS + (GAIN_OUTPUTS if self.gains else ())
 
     def __call__(self, position_m: Float[ArrayLike, ""]) -> Float[Array, " outputs"]:
-        """The outputs at table position Y (m): θ(Y), the normalised MCM parameters, and with
-        gains δ(Y) after them."""
+        """The outputs at table position Y (m), a real scalar inside ``travel_m`` (a network
+        does not extrapolate; checked eagerly, and under ``jit``/``vmap``/``grad`` by an
+        ``eqx.error_if``): θ(Y), the normalised MCM parameters, and with gains δ(Y) after
+        them."""
+        where = "ATANetwork(position_m=...)"
+        lo, hi = self.travel_m
+        y = _checks.inside(_checks.real_scalar(position_m, where), lo, hi, where,
+                           "the network's travel")
+        return self._outputs(y)
+
+    def _outputs(self, position_m) -> Float[Array, " outputs"]:
+        """:meth:`__call__` without its checks, for positions checked already (the scheduled
+        loop's, the fitted designs')."""
         lo, hi = self.travel_m
         y = 2.0 * (jnp.asarray(position_m, jnp.float64) - lo) / (hi - lo) - 1.0
         return self.mlp(jnp.reshape(y, (1,)))
@@ -125,8 +127,9 @@ class ATANetwork(eqx.Module):
 
 def _scheduled(loop: DoubleLoop, network: ATANetwork, bounds: MCMBounds,
                position_m) -> DoubleLoop:
-    """The double loop ``loop`` with the network's MCM (and gain factors) at Y."""
-    out = network(position_m)
+    """The double loop ``loop`` with the network's MCM (and gain factors) at Y (checked by the
+    caller)."""
+    out = network._outputs(position_m)
     n = len(MCM_PARAMETERS)
     loop = eqx.tree_at(lambda c: c.mcm, loop, bounds.to_mcm(out[:n]))
     if network.gains:
@@ -167,6 +170,13 @@ class ScheduledLoop(AbstractController):
         """``position_m`` checked inside the network's travel (guarded when traced)."""
         lo, hi = self.network.travel_m
         return _checks.inside(position_m, lo, hi, where, "the network's travel")
+
+    def check_position(self, position_m, where: str):
+        """Positions (m) inside the network's travel (:meth:`AbstractController.check_position`)."""
+        if position_m is None:
+            raise ValueError(f"`{where}` is required: the schedule's law depends on the table "
+                             "position")
+        return self._in_travel(position_m, where)
 
     def controller(self, position_m: Float[ArrayLike, ""]) -> DoubleLoop:
         """The fixed double loop the schedule runs at table position Y (m), inside the travel
@@ -233,11 +243,15 @@ class InterpolatedLoop(AbstractController):
     def __init__(self, loop: DoubleLoop, positions_m, theta, bounds: MCMBounds):
         _checks.instance(loop, DoubleLoop, "InterpolatedLoop(loop=...)")
         _checks.instance(bounds, MCMBounds, "InterpolatedLoop(bounds=...)")
-        y = jnp.asarray(positions_m, jnp.float64)
-        t = jnp.asarray(theta, jnp.float64)
+        y = _checks.real_array(positions_m, "InterpolatedLoop(positions_m=...)")
+        t = _checks.real_array(theta, "InterpolatedLoop(theta=...)")
         if y.ndim != 1 or y.shape[0] < 2 or t.shape != (y.shape[0], len(MCM_PARAMETERS)):
             raise ValueError(f"`InterpolatedLoop(positions_m=..., theta=...)` must have shapes "
                              f"(n,) and (n, 7) with n ≥ 2, got {y.shape} and {t.shape}")
+        y = _checks.inside(y, -_checks.LONGEST_TRAVEL_M, _checks.LONGEST_TRAVEL_M,
+                           "InterpolatedLoop(positions_m=...)",
+                           "the longest travel of a ball-screw axis")
+        t = _checks.finite(t, "InterpolatedLoop(theta=...)")
         if not bool(jnp.all(jnp.diff(y) > 0)):
             raise ValueError("`InterpolatedLoop(positions_m=...)` must be increasing, got "
                              f"{[float(v) for v in y]}")
@@ -254,18 +268,32 @@ class InterpolatedLoop(AbstractController):
         if _checks.is_concrete(y) and _checks.is_concrete(self.positions_m):
             v, ys = np.asarray(y), np.asarray(self.positions_m)
             lo, hi = float(ys[0]), float(ys[-1])
-            mm = ((v < lo) | (v > hi)) & (v * 1e-3 >= lo) & (v * 1e-3 <= hi)
+            mm = ((v < lo) | (v > hi)) & (v / 1000 >= lo) & (v / 1000 <= hi)
             if np.any(mm):
                 bad = float(v[mm][0]) if v.ndim else float(v)
                 raise ValueError(f"`{where}` must be a table position in metres (the designs "
                                  f"lie at {lo:.6g} … {hi:.6g} m), got {bad:.6g}; "
-                                 f"{bad:.6g} mm is {bad * 1e-3:.6g} m")
+                                 f"{bad:.6g} mm is {bad / 1000:.6g} m")
+        return y
+
+    def check_position(self, position_m, where: str):
+        """Finite positions (m), not in mm (:meth:`AbstractController.check_position`)."""
+        if position_m is None:
+            raise ValueError(f"`{where}` is required: the interpolated designs depend on the "
+                             "table position")
+        return self._position(position_m, where)
+
+    def _scalar(self, position_m, where: str):
+        y = self._position(position_m, where)
+        if y.ndim != 0:
+            raise ValueError(f"`{where}` must be one table position (a scalar; jax.vmap over "
+                             f"positions), got shape {y.shape}")
         return y
 
     def normalised(self, position_m: Float[ArrayLike, ""]) -> Float[Array, " 7"]:
         """θ(Y) (class docstring)."""
         return self._interpolated(
-            self._position(position_m, "InterpolatedLoop.normalised(position_m=...)"))
+            self._scalar(position_m, "InterpolatedLoop.normalised(position_m=...)"))
 
     def _interpolated(self, y):
         return jax.vmap(lambda col: jnp.interp(y, self.positions_m, col))(self.theta.T)
@@ -273,7 +301,7 @@ class InterpolatedLoop(AbstractController):
     def controller(self, position_m: Float[ArrayLike, ""]) -> DoubleLoop:
         """The fixed double loop at table position Y (m); outside the design positions the
         end designs hold."""
-        y = self._position(position_m, "InterpolatedLoop.controller(position_m=...)")
+        y = self._scalar(position_m, "InterpolatedLoop.controller(position_m=...)")
         mcm = self.bounds.to_mcm(self._interpolated(y))
         return eqx.tree_at(lambda c: c.mcm, self.loop, mcm)
 
@@ -299,19 +327,23 @@ def fit_network(
 
     ``steps`` optimiser steps (a ``lax.scan``: one compilation) of ``optimiser`` (default
     ``optax.adam(1e-2)``) on the network's weights.  Returns the trained network and the loss
-    after each step.
+    after each step.  At least one design; its positions inside the network's travel (m: a
+    position in mm is named with its value in metres) and its targets finite.
     """
-    _checks.instance(network, ATANetwork, "fit_network(network=...)")
-    y = _checks.real_array(positions_m, "fit_network(positions_m=...)")
-    t = _checks.real_array(targets, "fit_network(targets=...)")
+    fn = "fit_network"
+    _checks.instance(network, ATANetwork, f"{fn}(network=...)")
+    y = _checks.real_array(positions_m, f"{fn}(positions_m=...)")
+    t = _checks.real_array(targets, f"{fn}(targets=...)")
     m = len(network.outputs)
-    if y.ndim != 1 or t.shape != (y.shape[0], m):
+    if y.ndim != 1 or y.shape[0] == 0 or t.shape != (y.shape[0], m):
         raise ValueError(
-            f"`fit_network(positions_m=..., targets=...)` must have shapes (n,) and (n, {m}) "
-            f"(the network's outputs), got {y.shape} and {t.shape}"
+            f"`{fn}(positions_m=..., targets=...)` must have shapes (n,) and (n, {m}) "
+            f"(n ≥ 1 designs; {m} the network's outputs), got {y.shape} and {t.shape}"
         )
-    if not (isinstance(steps, int) and steps >= 1):
-        raise ValueError(f"`fit_network(steps=...)` must be a positive int, got {steps!r}")
+    lo, hi = network.travel_m
+    y = _checks.inside(y, lo, hi, f"{fn}(positions_m=...)", "the network's travel")
+    t = _checks.finite(t, f"{fn}(targets=...)")
+    steps = _checks.static_int(steps, f"{fn}(steps=...)", 1)
     opt = default_optimiser("adam", 1e-2) if optimiser is None else optimiser
     return _fit(network, y, t, steps, opt)
 
@@ -322,7 +354,7 @@ def _fit(network, y, t, steps, opt):
 
     def loss(p):
         net = eqx.combine(p, static)
-        return jnp.mean(jnp.sum((jax.vmap(net)(y) - t) ** 2, axis=-1))
+        return jnp.mean(jnp.sum((jax.vmap(net._outputs)(y) - t) ** 2, axis=-1))
 
     def step(carry, _):
         p, state = carry
@@ -374,11 +406,15 @@ def _hyperparameters(schedule: ScheduledLoop, extra: dict | None) -> dict:
 
 
 def _schedule_path(fn, path):
-    """The leaves' path; the JSON beside it takes the suffix .json, so the path cannot."""
+    """The leaves' path, ``.eqx`` added when it has no suffix (as equinox's serialisation adds
+    it to a path without one: the file written and the file read are the same); the JSON beside
+    it takes the suffix .json, so the path cannot."""
     path = os.fspath(path)
     if os.path.splitext(path)[1].lower() == ".json":
         raise ValueError(f"`{fn}(path=...)` must be the schedule's leaves (e.g. "
                          f"'schedule.eqx'), not the JSON beside them, got {path!r}")
+    if pathlib.Path(path).suffix == "":  # equinox's own rule (`tree_serialise_leaves`)
+        path = str(pathlib.Path(path).with_suffix(".eqx"))
     return path
 
 
@@ -386,8 +422,9 @@ def save_schedule(path: str | os.PathLike, schedule: ScheduledLoop, *,
                   metadata: dict | None = None) -> None:
     """Write ``schedule`` to ``path`` (its leaves, ``eqx.tree_serialise_leaves``) and its
     hyperparameters, units and ``metadata`` (e.g. the drive it was tuned for) to the JSON file
-    beside it (``path`` with suffix ``.json``).  :func:`load_schedule` reads both back,
-    bit for bit."""
+    beside it (``path`` with suffix ``.json``).  A path without a suffix takes ``.eqx``, as in
+    equinox: ``save_schedule("s1", ...)`` writes ``s1.eqx`` and ``s1.json``.
+    :func:`load_schedule` reads both back (from ``"s1"`` or ``"s1.eqx"``), bit for bit."""
     _checks.instance(schedule, ScheduledLoop, "save_schedule(schedule=...)")
     path = _schedule_path("save_schedule", path)
     folder = os.path.dirname(path)
@@ -425,19 +462,24 @@ def write_pair(leaves_path: str, tree, json_path: str, meta: dict, fn: str) -> N
 
 def load_schedule(path: str | os.PathLike) -> ScheduledLoop:
     """Read a schedule written by :func:`save_schedule` (the leaves at ``path``, the
-    hyperparameters from the JSON file beside it)."""
-    path = _schedule_path("load_schedule", path)
-    if os.path.isdir(path):
-        hint = os.path.join(path, "schedule.eqx")
+    hyperparameters from the JSON file beside it, ``path`` with suffix ``.json``).  A path
+    without a suffix takes ``.eqx``, as :func:`save_schedule` does: ``load_schedule("s1")``
+    reads ``s1.eqx`` and ``s1.json``."""
+    given = os.fspath(path)
+    path = _schedule_path("load_schedule", given)
+    if os.path.isdir(given):
+        hint = os.path.join(given, "schedule.eqx")
         hint = f"; did you mean {hint!r}?" if os.path.exists(hint) else ""
         raise IsADirectoryError(f"`load_schedule(path=...)` must be a schedule's file (e.g. "
-                                f"'schedule.eqx'), got the folder {path!r}{hint}")
+                                f"'schedule.eqx'), got the folder {given!r}{hint}")
+    # leaves at the path without a suffix: written by an fdjax before save_schedule added .eqx
+    leaves = given if not os.path.exists(path) and os.path.isfile(given) else path
     meta_path = os.path.splitext(path)[0] + ".json"
-    if not os.path.exists(path):
+    if not os.path.exists(leaves):
         raise FileNotFoundError(f"`load_schedule(path=...)`: no file {path!r}")
     if not os.path.exists(meta_path):
         raise FileNotFoundError(f"`load_schedule(path=...)`: no file {meta_path!r} (the "
-                                f"hyperparameters that save_schedule writes beside {path!r})")
+                                f"hyperparameters that save_schedule writes beside {leaves!r})")
     with open(meta_path) as f:
         meta = json.load(f)
     if meta.get("format") != _FORMAT:
@@ -447,4 +489,5 @@ def load_schedule(path: str | os.PathLike) -> ScheduledLoop:
     net = ATANetwork(tuple(meta["network"]["travel_m"]), width=meta["network"]["width"],
                      gains=bool(meta["network"].get("gains", False)))
     like = ScheduledLoop(DoubleLoop(**meta["gains"]), net, bounds)
-    return eqx.tree_deserialise_leaves(path, like)
+    with open(leaves, "rb") as f:  # a file object: equinox adds no suffix to it
+        return eqx.tree_deserialise_leaves(f, like)

@@ -26,6 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Float
 
+from .. import _checks
 from .._drive._model import BallScrewDrive
 from ._local import LocalTuning, _check_common, _settled, _start, _terms_at
 from ._objective import Objective
@@ -163,8 +164,7 @@ def tune_simplex(
         progress: print the best J's mean and max after each chunk (to stderr).
     """
     fn = "tune_simplex"
-    if not (isinstance(evaluations, int) and evaluations >= 1):
-        raise ValueError(f"`{fn}(evaluations=...)` must be a positive int, got {evaluations!r}")
+    evaluations = _checks.static_int(evaluations, f"{fn}(evaluations=...)", 1)
     pos, objective = _check_common(fn, parameterisation, objective, drive, positions_m,
                                    evaluations, chunk)
     theta = _start(fn, parameterisation, start, pos.size)
@@ -172,8 +172,7 @@ def tune_simplex(
     if evaluations <= n_par + 1:
         raise ValueError(f"`{fn}(evaluations=...)` must exceed the {n_par + 1} vertices of the "
                          f"simplex, got {evaluations}")
-    if not (isinstance(step, (int, float)) and step > 0):
-        raise ValueError(f"`{fn}(step=...)` must be a positive number, got {step!r}")
+    step = _checks.static_number(step, f"{fn}(step=...)", lambda v: v > 0, "a positive number")
     state = _settled(jax.vmap(lambda x: _init(x, float(step)))(theta))
     y = jnp.asarray(pos)
     history, done, t_steps = [], 0, 0.0

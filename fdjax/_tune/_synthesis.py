@@ -39,6 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from .. import _checks
 from .._checks import instance
 from .._control._controllers import AbstractController
 from .._control._reference import (
@@ -101,7 +102,20 @@ def tuning_objective(servo: Servo | None = None, *, feedforward: bool = False,
     where the penalties' slope meets the error's, a few w above each requirement: 0.1–0.15
     above the modulus margin at the default w = 0.05, which is smooth for a search from afar;
     0.01–0.04 above at w = 0.01, where :func:`synthesise` finishes every design
-    (``examples/margin_requirements.py`` compares them)."""
+    (``examples/margin_requirements.py`` compares them).
+
+    ``servo`` is an :class:`fdjax.Servo` (default :func:`reference_servo`), ``feedforward`` a
+    bool, ``kept_modes`` an integer from 1 to the twin's number of modes (``None``: the modes
+    of the twin's band) and ``margin_width`` a finite positive real scalar."""
+    fn = "tuning_objective"
+    if servo is not None:
+        instance(servo, Servo, f"{fn}(servo=...)")
+    feedforward = _checks.static_bool(feedforward, f"{fn}(feedforward=...)")
+    if kept_modes is not None:  # the twin's own limit, named here (TwinOptions)
+        kept_modes = _checks.static_int(kept_modes, f"{fn}(kept_modes=...)", 1,
+                                        2 * TwinOptions().n_elements + 5)
+    where = f"{fn}(margin_width=...)"
+    margin_width = _checks.positive(_checks.real_scalar(margin_width, where), where)
     return Objective(tuning_motion(), np.geomspace(5.0, 3900.0, 400),
                      servo=reference_servo() if servo is None else servo,
                      twin=TwinOptions(kept_modes=kept_modes),
@@ -187,8 +201,7 @@ def _say(progress, text):
 
 
 def _count(name, value, least):
-    if isinstance(value, bool) or not (isinstance(value, int) and value >= least):
-        raise ValueError(f"`synthesise({name}=...)` must be an int ≥ {least}, got {value!r}")
+    _checks.static_int(value, f"synthesise({name}=...)", least)
 
 
 def synthesise(
@@ -240,9 +253,7 @@ def synthesise(
             f"(Fig. 18), got [{lo:.6g}, {hi:.6g}] m; for other positions run the tuners "
             f"(tune_local, tune_shared_gains, fit_network, train_schedule) directly")
     seconds = {}
-    if not (isinstance(margin_width, (int, float)) and margin_width > 0):
-        raise ValueError(f"`synthesise(margin_width=...)` must be a positive number, got "
-                         f"{margin_width!r}")
+    _checks.static_positive(margin_width, "synthesise(margin_width=...)")
     # every count before the first stage, not when its stage comes minutes later
     for name, value, least in (
             ("local_steps", local_steps, 1), ("refine_steps", refine_steps, 1),
