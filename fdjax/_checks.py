@@ -76,6 +76,16 @@ def inside(value, lo: float, hi: float, where: str, what: str = "the travel"):
     millimetres: the message says so, with the value in metres."""
     _numbers(value, where)  # a string or another object that is not numbers: a TypeError
     ok = lambda p: (p >= lo) & (p <= hi)  # noqa: E731  (NaN fails both comparisons)
+    expected = f"inside {what} [{lo:.6g}, {hi:.6g}] m"
+    if not is_concrete(value):  # traced: the same sentences, without the value
+        value = jnp.asarray(value)
+        bad = jnp.logical_not(jnp.all(ok(value)))
+        in_mm = jnp.all(ok(value) | ok(value / 1000))
+        return eqx.branched_error_if(
+            value, bad, in_mm.astype(jnp.int32),
+            [f"`{where}` must be {expected}",
+             f"`{where}` must be {expected}; table positions are in metres (the value lies "
+             f"inside once divided by 1000: it was given in mm)"])
     try:
         return check(value, ok, where, f"inside {what} [{lo:.6g}, {hi:.6g}] m")
     except ValueError as err:  # raised eagerly: the value is concrete and real here

@@ -378,3 +378,57 @@ def test_a_schedule_names_the_callers_position():
     with pytest.raises(ValueError, match=r"`loop_margins\(position_m=\.\.\.\)` must be inside "
                                          r"the network's travel .* 300 mm is 0\.3 m"):
         fdjax.loop_margins(narrow, H, f, position_m=300.0, **kw)
+
+
+def test_a_position_in_mm_under_jit_says_so():
+    """Traced, the value cannot be printed, but the mm hint can still be given: the check
+    picks the sentence by whether the value lies inside once divided by 1000."""
+    drive = fdjax.reference_drive()
+    frf = eqx.filter_jit(lambda y: drive.frf(y, jnp.geomspace(10.0, 100.0, 3)))
+    with pytest.raises(CHECK_FAILED, match=r"must be inside the travel \[0\.1, 0\.7\] m; table "
+                                           r"positions are in metres \(the value lies inside "
+                                           r"once divided by 1000: it was given in mm\)"):
+        jax.block_until_ready(frf(jnp.asarray([300.0])))
+    with pytest.raises(CHECK_FAILED, match=r"must be inside the travel \[0\.1, 0\.7\] m") as info:
+        jax.block_until_ready(frf(jnp.asarray([0.9])))
+    assert "given in mm" not in str(info.value)
+
+
+def test_tuners_name_a_bad_optimiser_and_pid_corner():
+    """An optimiser given by name, not as an optax transformation, is named by the tuner
+    (it failed on an attribute inside optax); a PID's derivative corner must be positive (a
+    negative one puts the filter's pole in the right half-plane); smooth_max and descend
+    refuse what they cannot reduce."""
+    drive = fdjax.reference_drive()
+    start = fdjax.reference_controller(drive)
+    par = fdjax.DoubleLoopParameterisation(fdjax.MCMBounds.for_servo(fdjax.Servo()), start)
+    obj = fdjax.tuning_objective()
+    with pytest.raises(TypeError, match=r"`tune_local\(optimiser=\.\.\.\)` must be an optax "
+                                        r"GradientTransformation \(e\.g\. optax\.adam\(0\.02\)\), "
+                                        r"got 'adam'"):
+        fdjax.tune_local(par, obj, drive, [0.3], start, optimiser="adam")
+    with pytest.raises(ValueError, match=r"`PID\(wd=\.\.\.\)` must be positive \(the derivative "
+                                         r"filter's corner, rad/s\), got -10"):
+        fdjax.PID(1.0, 1.0, 1.0, -10.0)
+    with pytest.raises(ValueError, match=r"`smooth_max\(values=\.\.\.\)` must be a non-empty 1-D "
+                                         r"array, got shape \(0,\)"):
+        fdjax.smooth_max(jnp.zeros(0), 10.0)
+    with pytest.raises(ValueError, match=r"`descend\(steps=\.\.\.\)` must be an integer at least "
+                                         r"1, got 0"):
+        fdjax.descend(lambda p: (p**2, p), jnp.ones(()), None, 0)
+
+
+def test_a_motion_out_of_the_travel_is_refused_before_the_run():
+    """The trajectory's exact extremes are checked against the travel before anything is
+    compiled; a stroke typed in mm (5 for 5 mm) says so, a real overrun does not."""
+    drive = fdjax.reference_drive()
+    loop = fdjax.DoubleLoop()
+    mm = fdjax.reciprocating(stroke=5.0, v_max=10.0, a_max=100.0, j_max=1e4)
+    with pytest.raises(ValueError, match=r"`simulate\(reference=\.\.\., position_m=\.\.\.\)`: the "
+                                         r"reference motion from table position 0\.115 m reaches "
+                                         r"5\.115 m, outside the travel \[0\.1, 0\.7\] m; motions "
+                                         r"are in metres: a move of 5 mm is 0\.005 m"):
+        fdjax.simulate(loop, drive, mm, position_m=0.115)
+    with pytest.raises(ValueError, match=r"reaches 0\.815 m, outside the travel \[0\.1, 0\.7\] "
+                                         r"m$"):
+        fdjax.simulate(loop, drive, fdjax.reciprocating(stroke=0.7), position_m=0.115)

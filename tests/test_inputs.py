@@ -123,6 +123,23 @@ def test_interpolated_loop_refuses_other_types_and_unordered_positions():
         with pytest.raises(ValueError, match=r"`InterpolatedLoop\(positions_m=\.\.\.\)` must be "
                                              r"increasing, got " + shown):
             fdjax.InterpolatedLoop(LOOP, y, THETA, BOUNDS)
+    # positions in metres and finite, θ finite, one position per controller
+    with pytest.raises(ValueError, match=r"`InterpolatedLoop\(positions_m=\.\.\.\)` must be "
+                                         r"inside the longest travel of a ball-screw axis "
+                                         r"\[-20, 20\] m, got 100 at index 0 and 3 more; table "
+                                         r"positions are in metres: 100 mm is 0\.1 m"):
+        fdjax.InterpolatedLoop(LOOP, POSITIONS * 1000, THETA, BOUNDS)
+    with pytest.raises(ValueError, match=r"`InterpolatedLoop\(positions_m=\.\.\.\)` must be "
+                                         r"inside .* got inf at index 3"):
+        fdjax.InterpolatedLoop(LOOP, np.r_[POSITIONS[:3], np.inf], THETA, BOUNDS)
+    with pytest.raises(ValueError, match=r"`InterpolatedLoop\(theta=\.\.\.\)` must be finite"):
+        fdjax.InterpolatedLoop(LOOP, POSITIONS, np.where(THETA == THETA[0, 0], np.nan, THETA),
+                               BOUNDS)
+    loop = fdjax.InterpolatedLoop(LOOP, POSITIONS, THETA, BOUNDS)
+    with pytest.raises(ValueError, match=r"`InterpolatedLoop\.controller\(position_m=\.\.\.\)` "
+                                         r"must be one table position \(a scalar; jax\.vmap over "
+                                         r"positions\), got shape \(2,\)"):
+        loop.controller(np.array([0.2, 0.3]))
 
 
 # ------------------------------------------------------------------------------- MCMBounds
@@ -348,9 +365,9 @@ def test_rms_error_is_the_root_mean_square_of_each_error(run):
     np.testing.assert_allclose(np.asarray(batch.rms_error()), [rms2, 2 * rms2], rtol=1e-14)
     np.testing.assert_allclose(np.asarray(batch.rms_error("tool")), [rms3, 3 * rms3],
                                rtol=1e-14)
-    for which in ("x3", "Scale", None, 2):
+    for which in ("x3", "Scale", None, 2, ["scale"]):
         with pytest.raises(ValueError, match=r"`Simulation\.rms_error\(which=\.\.\.\)` must be "
-                                             rf"'scale' or 'tool', got {which!r}"):
+                                             rf"'scale' or 'tool', got {re.escape(repr(which))}"):
             run.rms_error(which)
 
 
@@ -401,3 +418,26 @@ def test_objective_total_is_the_documented_sum_of_its_terms(drive, loops, run):
         assert bool(st.stable) == bool(terms.stable)
         # eigenvalues against the run's spectral radius: measured ≤ 9.3e-12 relative
         np.testing.assert_allclose(float(st.growth_rate), float(terms.growth_rate), rtol=3e-11)
+
+
+def test_short_grids_objects_and_plants_are_named():
+    """A grid too short for the margins names the grid (it used to blame L); the trackers and
+    the analysis entry points refuse an object that is not what they take with a TypeError
+    naming it."""
+    with pytest.raises(ValueError, match=r"`stability_margins\(freq_hz=\.\.\.\)` must have at "
+                                         r"least 3 points, got 2"):
+        fdjax.stability_margins([1.0, 2.0], np.ones(2, complex))
+    with pytest.raises(TypeError, match=r"`track_drive_modes\(modes=\.\.\.\)` must be an "
+                                        r"fdjax\.DriveModes .*, got int"):
+        fdjax.track_drive_modes(1)
+    with pytest.raises(TypeError, match=r"`track_modes\(fits=\.\.\.\)` must be an "
+                                        r"fdjax\.ModalFit .*, got int"):
+        fdjax.track_modes(1)
+    with pytest.raises(TypeError, match=r"`check_stability\(plant=\.\.\.\)` must be a "
+                                        r"BallScrewDrive \(with position_m\), a StateSpace, or "
+                                        r"an FRF array .*, got str"):
+        fdjax.check_stability(LOOP, "drive")
+    with pytest.raises(ValueError, match=r"`MCMBounds\.for_servo\(freq_min_hz=\.\.\.\)` must "
+                                         r"be a positive number below the filters' highest "
+                                         r"frequency 3600 Hz, got 4000\.0"):
+        fdjax.MCMBounds.for_servo(SERVO, freq_min_hz=4000.0)

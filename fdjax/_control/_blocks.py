@@ -124,6 +124,12 @@ class PID(AbstractBlock):
     kd: Float[Array, ""] = _checks.finite_scalar_field("PID(kd=...)")
     wd: Float[Array, ""] = _checks.finite_scalar_field("PID(wd=...)")
 
+    def __check_init__(self):
+        # the derivative filter's corner: its pole −ω_d must be stable
+        if _checks.is_concrete(self.wd) and not float(self.wd) > 0:
+            raise ValueError(f"`PID(wd=...)` must be positive (the derivative filter's corner, "
+                             f"rad/s), got {float(self.wd):.6g}")
+
     def continuous(self) -> LTI:
         kd, wd = self.kd, self.wd
         return _siso(

@@ -249,13 +249,15 @@ class BallScrewDrive(eqx.Module):
         return jnp.einsum("oi,...ij->...oj", outputs.astype(jnp.complex128), X)
 
     # ------------------------------------------------------------------ public, checked
-    def substructure_receptances(self, position_m, omega):
+    def substructure_receptances(self, position_m: Float[ArrayLike, "*shape"],
+                                 omega: Complex[ArrayLike, "*shape"]):
         """Uncoupled receptances: R (h11, h1l, hll), A h_ll and S (3×3 over x_n, x2, x3)."""
         fn = "BallScrewDrive.substructure_receptances"
         out = self._substructure_receptances(*self._check_point(position_m, omega, fn))
         return _checks.finite_tree(out, f"{fn}(...)")
 
-    def coupled_receptance(self, position_m, omega) -> list[list[Complex[Array, ...]]]:
+    def coupled_receptance(self, position_m: Float[ArrayLike, "*shape"],
+                           omega: Complex[ArrayLike, "*shape"]) -> list[list[Complex[Array, ...]]]:
         """Coupled receptance over (θ1, θ_l, u_l, x_n, x2, x3) by LM-FBS (paper Eq. 1).
 
         Returned as a 6×6 nested list of broadcast arrays (see ``fdjax._linalg``).
@@ -264,7 +266,8 @@ class BallScrewDrive(eqx.Module):
         out = self._coupled_receptance(*self._check_point(position_m, omega, fn))
         return _checks.finite_tree(out, f"{fn}(...)")
 
-    def receptance(self, position_m, omega) -> Complex[Array, "... 3 2"]:
+    def receptance(self, position_m: Float[ArrayLike, "*shape"],
+                   omega: Complex[ArrayLike, "*shape"]) -> Complex[Array, "... 3 2"]:
         """H_M at broadcastable table positions (m) and angular frequencies (rad/s).
 
         Positions must lie inside ``travel_m`` and ω must be finite (real, or complex for a
@@ -274,13 +277,15 @@ class BallScrewDrive(eqx.Module):
         out = from_entries(self._receptance_entries(*self._check_point(position_m, omega, fn)))
         return _checks.finite_output(out, f"{fn}(...)")
 
-    def receptance_entries(self, position_m, omega) -> list[list[Complex[Array, ...]]]:
+    def receptance_entries(self, position_m: Float[ArrayLike, "*shape"],
+                           omega: Complex[ArrayLike, "*shape"]) -> list[list[Complex[Array, ...]]]:
         """H_M as a 3×2 nested list of arrays (no interleaving; the fastest form in a jit)."""
         fn = "BallScrewDrive.receptance_entries"
         out = self._receptance_entries(*self._check_point(position_m, omega, fn))
         return _checks.finite_tree(out, f"{fn}(...)")
 
-    def receptance_direct(self, position_m, omega) -> Complex[Array, "... 3 2"]:
+    def receptance_direct(self, position_m: Float[ArrayLike, "*shape"],
+                          omega: Complex[ArrayLike, "*shape"]) -> Complex[Array, "... 3 2"]:
         """H_M by assembling the whole drive as one dynamic stiffness (no coupling step).
 
         DOFs (θ1, θ(0), θ(l), θ(L), u(0), u(l), u(L), x_c, ψ), and x_t last with a

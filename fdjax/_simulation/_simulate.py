@@ -239,6 +239,7 @@ def simulate(
         pos0 = plant._check_travel(pos0, fn)
         pos0 = controller.check_position(pos0, f"{fn}(position_m=...)")
         lo, hi = plant.travel_m
+        _check_reach(reference, pos0, lo, hi, fn)
         twin = twin.resolve(plant, fn)
         travel = (float(lo), float(hi))
     elif isinstance(plant, StateSpace):
@@ -283,6 +284,28 @@ def simulate(
         else:
             sim = sim.result.error_if(sim, failed)
     return sim
+
+
+def _check_reach(reference, pos0, lo, hi, fn):
+    """Before the run: a reference with exact extremes (a :class:`fdjax.Trajectory`) keeps
+    the table inside the travel from ``pos0``, or the error says where it goes (and, for a
+    move of a metre or more that fits once divided by 1000, that it was given in mm)."""
+    reach = getattr(reference, "position_range", None)
+    if reach is None or not _checks.is_concrete(pos0):
+        return
+    r_lo, r_hi = reach()
+    if not (_checks.is_concrete(r_lo) and _checks.is_concrete(r_hi)):
+        return
+    y0, r_lo, r_hi = float(pos0), float(r_lo), float(r_hi)
+    if lo <= y0 + r_lo and y0 + r_hi <= hi:
+        return
+    far = y0 + (r_hi if y0 + r_hi > hi else r_lo)
+    msg = (f"`{fn}(reference=..., position_m=...)`: the reference motion from table position "
+           f"{y0:.4g} m reaches {far:.4g} m, outside the travel [{lo:.4g}, {hi:.4g}] m")
+    if abs(far - y0) >= 1.0 and lo <= y0 + r_lo / 1000 and y0 + r_hi / 1000 <= hi:
+        msg += (f"; motions are in metres: a move of {far - y0:.6g} mm is "
+                f"{(far - y0) / 1000:.6g} m")
+    raise ValueError(msg)
 
 
 def _with_pole(sim, controller, plant, method, servo, pos0, twin) -> str:

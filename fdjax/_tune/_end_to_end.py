@@ -29,7 +29,7 @@ from .. import _checks
 from .._drive._model import BallScrewDrive
 from ._local import Descent, descend, smooth_max
 from ._objective import Objective
-from ._optimisers import default_optimiser
+from ._optimisers import optimiser_or
 from ._parameterisation import LOG_GAIN_LIMIT
 from ._schedule import ScheduledLoop
 
@@ -164,7 +164,7 @@ def train_schedule(
     reference = jnp.stack(_GAINS(schedule)) if train_gains else None
     loss = _EndToEndLoss(static, objective, drive, fixed, reference,
                          tuple(float(v) for v in drive.travel_m), batch, float(sharpness))
-    opt = default_optimiser("adam", 3e-3) if optimiser is None else optimiser
+    opt = optimiser_or(optimiser, f"{fn}(optimiser=...)", "adam", 3e-3)
     if fixed is not None:
         key = None
     elif key is None:

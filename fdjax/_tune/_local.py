@@ -22,7 +22,7 @@ from .. import _checks
 from .._control._controllers import AbstractController
 from .._drive._model import BallScrewDrive
 from ._objective import Objective, ObjectiveTerms
-from ._optimisers import default_optimiser
+from ._optimisers import optimiser_or
 from ._parameterisation import AbstractParameterisation
 
 __all__ = ["LocalTuning", "RobustTuning", "tune_local", "tune_robust", "tune_shared_gains",
@@ -97,7 +97,7 @@ def tune_local(
     pos, objective = _check_common(fn, parameterisation, objective, drive, positions_m,
                                    steps, chunk)
     theta = _start(fn, parameterisation, start, pos.size)
-    opt = default_optimiser("adam", 0.02) if optimiser is None else optimiser
+    opt = optimiser_or(optimiser, f"{fn}(optimiser=...)", "adam", 0.02)
     y = jnp.asarray(pos)
     with jax.numpy_dtype_promotion("standard"):
         state = _settled(jax.vmap(opt.init)(theta))
@@ -261,6 +261,9 @@ def smooth_max(values: Float[ArrayLike, " n"], sharpness: float) -> Float[Array,
     sharpness = _checks.check(sharpness, lambda b: (b > 0) & (b < np.inf),
                               "smooth_max(sharpness=...)", "a finite positive number")
     v = jnp.asarray(values)
+    if v.ndim != 1 or v.shape[0] == 0:
+        raise ValueError(f"`smooth_max(values=...)` must be a non-empty 1-D array, got shape "
+                         f"{v.shape}")
     return (jax.nn.logsumexp(sharpness * v) - jnp.log(v.shape[0])) / sharpness
 
 
@@ -332,7 +335,7 @@ def tune_robust(
     sharpness = _checks.static_positive(sharpness, f"{fn}(sharpness=...)")
     theta = _start(fn, parameterisation, start)
     loss = _RobustLoss(parameterisation, objective, drive, jnp.asarray(pos), float(sharpness))
-    opt = default_optimiser("adam", 0.02) if optimiser is None else optimiser
+    opt = optimiser_or(optimiser, f"{fn}(optimiser=...)", "adam", 0.02)
     res = descend(loss, theta, opt, steps, chunk=chunk, progress=fn if progress else None)
     y = jnp.asarray(pos)
     c = parameterisation.to_controller(res.best)
@@ -366,6 +369,11 @@ def descend(loss, params, optimiser, steps: int, *, chunk: int = 25, key=None,
     kept), and a line search's trial at a non-finite point gets +∞ without evaluating
     ``loss``.  The compiled steps are reused by a later call with the same ``optimiser``
     object and the same shapes."""
+    steps = _checks.static_int(steps, "descend(steps=...)", 1)
+    chunk = _checks.static_int(chunk, "descend(chunk=...)", 1)
+    if not callable(getattr(optimiser, "update", None)):
+        raise TypeError(f"`descend(optimiser=...)` must be an optax GradientTransformation "
+                        f"(e.g. optax.adam(1e-2)), got {optimiser!r}")
     with jax.numpy_dtype_promotion("standard"):
         state = _settled(optimiser.init(params))
     best, best_v = params, _settled(jnp.asarray(jnp.inf))
@@ -466,7 +474,7 @@ def tune_shared_gains(
     params = (jnp.mean(theta[:, :n_shared], axis=0), theta[:, n_shared:])
     loss = _SharedGainsLoss(parameterisation, objective, drive, jnp.asarray(pos), n_shared,
                             float(sharpness))
-    opt = default_optimiser("adam", 0.02) if optimiser is None else optimiser
+    opt = optimiser_or(optimiser, f"{fn}(optimiser=...)", "adam", 0.02)
     res = descend(loss, params, opt, steps, chunk=chunk, progress=fn if progress else None)
 
     def rows(p):

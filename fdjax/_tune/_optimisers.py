@@ -6,7 +6,7 @@ import functools
 
 import optax
 
-__all__ = ["default_optimiser"]
+__all__ = ["default_optimiser", "optimiser_or"]
 
 
 @functools.cache
@@ -16,3 +16,15 @@ def default_optimiser(name: str, *args) -> optax.GradientTransformation:
     optimiser's functions, which compare by identity: a default made afresh at every call
     would compile afresh; pass the same object to reuse the compiled steps."""
     return getattr(optax, name)(*args)
+
+
+def optimiser_or(optimiser, where: str, name: str, *args) -> optax.GradientTransformation:
+    """``optimiser``, checked to be an optax transformation (a ``TypeError`` naming ``where``
+    otherwise), or the default :func:`default_optimiser` ``(name, *args)`` when it is None."""
+    if optimiser is None:
+        return default_optimiser(name, *args)
+    if not (callable(getattr(optimiser, "init", None))
+            and callable(getattr(optimiser, "update", None))):
+        raise TypeError(f"`{where}` must be an optax GradientTransformation (e.g. "
+                        f"optax.{name}({', '.join(map(repr, args))})), got {optimiser!r}")
+    return optimiser

@@ -40,7 +40,7 @@ from .. import _checks
 from .._control._controllers import AbstractController, DoubleLoop, Law
 from .._drive._model import travel_pair
 from .._filters import MCM
-from ._optimisers import default_optimiser
+from ._optimisers import optimiser_or
 from ._parameterisation import LOG_GAIN_LIMIT, MCM_PARAMETERS, MCMBounds
 
 __all__ = ["ATANetwork", "ScheduledLoop", "InterpolatedLoop", "fit_network", "save_schedule",
@@ -344,7 +344,7 @@ def fit_network(
     y = _checks.inside(y, lo, hi, f"{fn}(positions_m=...)", "the network's travel")
     t = _checks.finite(t, f"{fn}(targets=...)")
     steps = _checks.static_int(steps, f"{fn}(steps=...)", 1)
-    opt = default_optimiser("adam", 1e-2) if optimiser is None else optimiser
+    opt = optimiser_or(optimiser, f"{fn}(optimiser=...)", "adam", 1e-2)
     return _fit(network, y, t, steps, opt)
 
 
