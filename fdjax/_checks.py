@@ -87,15 +87,23 @@ def inside(value, lo: float, hi: float, where: str, what: str = "the travel"):
              f"`{where}` must be {expected}; table positions are in metres (the value lies "
              f"inside once divided by 1000: it was given in mm)"])
     try:
-        return check(value, ok, where, f"inside {what} [{lo:.6g}, {hi:.6g}] m")
+        return check(value, ok, where, expected)
     except ValueError as err:  # raised eagerly: the value is concrete and real here
-        arr = np.asarray(value, np.float64)
-        with np.errstate(invalid="ignore"):
-            bad = arr[~np.broadcast_to(ok(arr), arr.shape)]
-            if np.all(ok(bad / 1000)):  # 700 * 1e-3 is 0.7000000000000001
-                raise ValueError(f"{err}; table positions are in metres: {bad[0]:.6g} mm is "
-                                 f"{bad[0] / 1000:.6g} m") from None
+        mm = _in_mm(value, ok)
+        if mm is not None:
+            raise ValueError(f"{err}; table positions are in metres: {mm:.6g} mm is "
+                             f"{mm / 1000:.6g} m") from None
         raise
+
+
+def _in_mm(value, ok: Callable) -> float | None:
+    """The first entry of a concrete ``value`` that fails ``ok`` when every failing entry
+    passes it once divided by 1000 (lengths given in millimetres), else None."""
+    arr = np.asarray(value, np.float64)
+    with np.errstate(invalid="ignore"):
+        bad = arr[~np.broadcast_to(ok(arr), arr.shape)]
+        # divided, not multiplied by 1e-3: 700 * 1e-3 is 0.7000000000000001
+        return float(bad[0]) if bad.size and np.all(ok(bad / 1000)) else None
 
 
 def mm_hint(value: float) -> str:
@@ -114,10 +122,9 @@ def at_most(value, limit: float, where: str, reason: str):
     try:
         return check(value, ok, where, f"at most {limit:g} m ({reason})")
     except ValueError as err:  # concrete and real here
-        arr = np.asarray(value, np.float64)
-        bad = arr[~np.broadcast_to(ok(arr), arr.shape)]
-        if np.all(ok(bad / 1000)):
-            raise ValueError(f"{err}{mm_hint(float(bad[0]))}") from None
+        mm = _in_mm(value, ok)
+        if mm is not None:
+            raise ValueError(f"{err}{mm_hint(mm)}") from None
         raise
 
 
@@ -341,10 +348,10 @@ def finite_parameters(tree, where: str, traced: bool = False):
     leaves = [(path, x) for path, x in jax.tree_util.tree_leaves_with_path(tree)
               if eqx.is_inexact_array(x)]
     for path, x in leaves:
-        if is_concrete(x) and not np.all(np.isfinite(np.asarray(x))):
+        a = np.asarray(x) if is_concrete(x) else None
+        if a is not None and not np.all(np.isfinite(a)):
             raise ValueError(f"`{where}` must have finite parameters, got "
-                             f"{np.asarray(x).ravel()[~np.isfinite(np.asarray(x).ravel())][0]}"
-                             f" in {jax.tree_util.keystr(path)}")
+                             f"{a[~np.isfinite(a)].ravel()[0]} in {jax.tree_util.keystr(path)}")
     live = [x for _, x in leaves if not is_concrete(x)]
     if not (traced and live):
         return tree
