@@ -227,17 +227,20 @@ def _with_notes(value) -> None:
     """A public name whose docstring leans on its private module's docstring (the equations
     and conventions a module's names share) gets that text appended, so that ``help()`` on
     the public name shows it."""
+    import re
+
     doc = getattr(value, "__doc__", None)
     mod = sys.modules.get(getattr(value, "__module__", None) or "")
-    if not (callable(value) and doc and "module docstring" in doc and mod and mod.__doc__):
+    phrase = re.compile(r"(the\s+)?module\s+(docstring|docs)")  # across a line break too
+    if not (callable(value) and doc and phrase.search(doc) and mod and mod.__doc__):
         return
     import inspect
     import textwrap
 
     notes = textwrap.indent(inspect.cleandoc(mod.__doc__), "    ")
     try:
-        value.__doc__ = (doc.replace("the module docstring", "the notes below")
-                         .replace("module docstring", "notes below")
+        value.__doc__ = (phrase.sub(lambda m: "the notes below" if m.group(1) else
+                                    "notes below", doc)
                          + f"\n\n    Notes (``{value.__module__}``):\n\n{notes}\n")
     except (AttributeError, TypeError):  # a docstring that cannot be set: leave it
         pass

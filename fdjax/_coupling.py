@@ -55,7 +55,9 @@ def couple(
     interface: Float[ArrayLike, "m n"],
     joint: Complex[Array, "*batch m m"] | None = None,
 ) -> Complex[Array, "*batch n n"]:
-    r"""Couple substructures by LM-FBS (paper Eq. 1, derived form of DESIGN.md §2).
+    r"""Couple substructures by LM-FBS (paper Eq. 1, in the general form below; fdjax's screw
+    ratio i_sc = lead/2π (m/rad) is the reciprocal of the paper's i_a^b (rad/m), so Eq. (1)'s
+    h/(i_a^b)² appears as i_sc²·h).
 
     .. math:: Y_c = Y - Y B^T (B Y B^T + Y_j)^{-1} B Y
 
@@ -116,7 +118,8 @@ def block_diagonal(*blocks: Entries) -> Entries:
     return out
 
 
-def joint_receptance(stiffness, damping, omega) -> Complex[Array, ...]:
+def joint_receptance(stiffness: Float[ArrayLike, "*shape"], damping: Float[ArrayLike, "*shape"],
+                     omega: Complex[ArrayLike, "*shape"]) -> Complex[Array, "*shape"]:
     """Receptance of a spring–damper joint, ``1 / (k + iωc)`` (paper Eq. 1, last term).
 
     ``stiffness`` k > 0 (N/m), ``damping`` c ≥ 0 (N·s/m), finite angular frequencies ``omega``

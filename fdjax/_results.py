@@ -13,7 +13,10 @@ __all__ = ["RESULTS"]
 
 
 class RESULTS(eqx.Enumeration):
-    """Result codes of :func:`fdjax.simulate` and :func:`fdjax.check_stability`."""
+    """Result codes of :func:`fdjax.simulate` and :func:`fdjax.check_stability`:
+    ``successful``, ``unstable`` (a growing pole), ``diverged`` (a non-finite state or a scale
+    error past the bound), ``solver_failed`` (the ODE solver) and ``out_of_travel`` (the motion
+    leaves the drive's travel); each member's text is its message."""
 
     successful = ""
     unstable = (

@@ -100,7 +100,9 @@ class AbstractBlock(eqx.Module):
 
 
 class PI(AbstractBlock):
-    r"""C(s) = k_v (1 + k_i/s): a PI speed controller (k_i the corner, rad/s)."""
+    r"""C(s) = k_v (1 + k_i/s): a PI speed controller (paper Fig. 13), k_i the corner (rad/s),
+    k_v in the units of its output per input (A·s/m in :class:`fdjax.DoubleLoop`: current per
+    speed error)."""
 
     kv: Float[Array, ""] = _checks.finite_scalar_field("PI(kv=...)")
     ki: Float[Array, ""] = _checks.finite_scalar_field("PI(ki=...)")
@@ -114,7 +116,9 @@ class PI(AbstractBlock):
 
 
 class PID(AbstractBlock):
-    r"""C(s) = k_p + k_i/s + k_d s/(1 + s/ω_d): a PID with a first-order derivative filter.
+    r"""C(s) = k_p + k_i/s + k_d s/(1 + s/ω_d): a PID with a first-order derivative filter,
+    ω_d > 0 its corner (rad/s); the gains in the units of the output per input (A/m, A/(m·s),
+    A·s/m in :class:`fdjax.PIDLoop`: current per position error).
 
     Realised with the integrator z and the derivative filter's state x_d
     (ẋ_d = −ω_d x_d + e): k_d s/(1 + s/ω_d) = k_d ω_d (1 − ω_d/(s + ω_d))."""

@@ -33,8 +33,9 @@ _TWO_PI = 2.0 * math.pi
 
 
 def reference_servo() -> Servo:
-    r"""The reference servo of Figs. 14–17: T = 125 µs (8 kHz), d = 2 periods of delay
-    (τ = d·T = 250 µs), k_m = k_i·k_T = 1.2 N·m/A.  The same hardware as ``Servo()``."""
+    r"""The reference servo of the simulations of paper Figs. 14, 16–17: T = 125 µs (8 kHz),
+    d = 2 periods of delay (τ = d·T = 250 µs), k_m = k_i·k_T = 1.2 N·m/A.  The same hardware
+    as ``Servo()``."""
     return Servo(period=REFERENCE_PERIOD_S, delay_samples=REFERENCE_DELAY_SAMPLES,
                  k_motor=REFERENCE_K_MOTOR)
 

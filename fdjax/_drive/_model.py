@@ -256,8 +256,9 @@ class BallScrewDrive(eqx.Module):
         out = self._substructure_receptances(*self._check_point(position_m, omega, fn))
         return _checks.finite_tree(out, f"{fn}(...)")
 
-    def coupled_receptance(self, position_m: Float[ArrayLike, "*shape"],
-                           omega: Complex[ArrayLike, "*shape"]) -> list[list[Complex[Array, ...]]]:
+    def coupled_receptance(
+        self, position_m: Float[ArrayLike, "*shape"], omega: Complex[ArrayLike, "*shape"]
+    ) -> list[list[Complex[Array, "*shape"]]]:
         """Coupled receptance over (θ1, θ_l, u_l, x_n, x2, x3) by LM-FBS (paper Eq. 1).
 
         Returned as a 6×6 nested list of broadcast arrays (see ``fdjax._linalg``).
@@ -277,8 +278,9 @@ class BallScrewDrive(eqx.Module):
         out = from_entries(self._receptance_entries(*self._check_point(position_m, omega, fn)))
         return _checks.finite_output(out, f"{fn}(...)")
 
-    def receptance_entries(self, position_m: Float[ArrayLike, "*shape"],
-                           omega: Complex[ArrayLike, "*shape"]) -> list[list[Complex[Array, ...]]]:
+    def receptance_entries(
+        self, position_m: Float[ArrayLike, "*shape"], omega: Complex[ArrayLike, "*shape"]
+    ) -> list[list[Complex[Array, "*shape"]]]:
         """H_M as a 3×2 nested list of arrays (no interleaving; the fastest form in a jit)."""
         fn = "BallScrewDrive.receptance_entries"
         out = self._receptance_entries(*self._check_point(position_m, omega, fn))
@@ -305,8 +307,12 @@ class BallScrewDrive(eqx.Module):
     ) -> Complex[Array, "pos freq 3 2"]:
         r"""H_M(Y_table, f): the drive's 3×2 receptance on a position × frequency grid.
 
-        Outputs (θ1 rad, x2 m, x3 m) per inputs (T1 N·m, F3 N), paper Eq. (2) (derived form,
-        see the module docstring).  jit-compiled and vectorised; differentiable with respect to
+        Outputs (θ1 rad, x2 m, x3 m) per inputs (T1 N·m, F3 N), paper Eq. (2) in its derived
+        form: LM-FBS at the nut over u = (θ1, θ_l, u_l, x_n, x2, x3),
+        Y_c = Y − Y Bᵀ (i_sc² h_R,ll + h_A,ll + h_S,nn + 1/(k_ja + iωc_ja))⁻¹ B Y with
+        B = [0, −i_sc, −1, 1, 0, 0] (the bracket of paper Eq. 1; i_sc = lead/2π in m/rad, the
+        reciprocal of the paper's ratio), H_M the rows (θ1, x2, x3) and columns (T1, F3) of
+        Y_c.  jit-compiled and vectorised; differentiable with respect to
         every physical parameter of the drive.
 
         Args:

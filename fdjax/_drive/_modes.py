@@ -8,7 +8,7 @@ right/left eigenvectors the residue of output ``o`` per input ``i`` is
 
     h_r(ω) = R_r / (iω − λ_r) + R̄_r / (iω − λ̄_r).
 
-Its **resonant phase** is ``arg h_r(ω_r)`` (DESIGN.md §2, paper Table 1): for a term
+Its **resonant phase** is ``arg h_r(ω_r)`` (paper Table 1, Fig. 12): for a term
 ``A e^{iα} / (ω_r² − ω² + 2iζω_rω)`` this is ``α − 90°``.  Phases are wrapped to (−360°, 0].
 These are exact properties of the model (no curve fit), differentiable in every parameter.
 """

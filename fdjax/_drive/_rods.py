@@ -92,17 +92,17 @@ class Rod(eqx.Module):
         """Undamped wave speed ``c = √(Z/μ)`` (m/s)."""
         return jnp.sqrt(self.stiffness / self.inertia)
 
-    def complex_stiffness(self, omega) -> Complex[Array, ...]:
+    def complex_stiffness(self, omega) -> Complex[Array, "*shape"]:
         """``Z*(ω) = Z (1 + iη + iωβ)`` at finite angular frequencies ``omega`` (rad/s)."""
         return self._complex_stiffness(_omega(omega, "Rod.complex_stiffness(omega=...)"))
 
-    def impedance(self, omega) -> tuple[Complex[Array, ...], Complex[Array, ...]]:
+    def impedance(self, omega) -> tuple[Complex[Array, "*shape"], Complex[Array, "*shape"]]:
         """``(κZ*, κ)``: wave impedance ``κZ* = ω√(μZ*)`` and wavenumber ``κ = ω√(μ/Z*)``."""
         return self._impedance(_omega(omega, "Rod.impedance(omega=...)"))
 
     def segment_stiffness(
         self, omega, length
-    ) -> tuple[Complex[Array, ...], Complex[Array, ...]]:
+    ) -> tuple[Complex[Array, "*shape"], Complex[Array, "*shape"]]:
         """Diagonal and off-diagonal entries of ``D_seg`` for a segment of the given length.
 
         ``d = κZ* cot(κa)``, ``e = −κZ*/sin(κa)``; ``length`` a > 0 (m).
@@ -157,7 +157,7 @@ class Support(eqx.Module):
     damping: Float[Array, ""] = _checks.nonnegative_field("Support(damping=...)", default=0.0)
     mass: Float[Array, ""] = _checks.nonnegative_field("Support(mass=...)", default=0.0)
 
-    def dynamic_stiffness(self, omega) -> Complex[Array, ...]:
+    def dynamic_stiffness(self, omega) -> Complex[Array, "*shape"]:
         """``k + iωc − ω²m`` at finite angular frequencies ``omega`` (rad/s)."""
         return self._dynamic_stiffness(_omega(omega, "Support.dynamic_stiffness(omega=...)"))
 
@@ -177,16 +177,16 @@ def _segment(kz, phase):
     return 1j * kz * (e2 + 1.0) * den, -2j * kz * phase * den
 
 
-def spring_stiffness(stiffness, damping, omega) -> Complex[Array, ...]:
+def spring_stiffness(stiffness, damping, omega) -> Complex[Array, "*shape"]:
     """Dynamic stiffness ``k + iωc`` of a massless spring–damper element between two nodes."""
     return _cplx(stiffness) + 1j * _cplx(omega) * _cplx(damping)
 
 
 def tridiagonal_receptance(
-    diag: Sequence[Complex[Array, ...]],
-    off: Sequence[Complex[Array, ...]],
+    diag: Sequence[Complex[Array, "*shape"]],
+    off: Sequence[Complex[Array, "*shape"]],
     pairs: Sequence[tuple[int, int]],
-) -> list[Complex[Array, ...]]:
+) -> list[Complex[Array, "*shape"]]:
     r"""Entries ``(D⁻¹)_ij`` of a symmetric tridiagonal dynamic stiffness, elementwise.
 
     With left Schur complements ``a_0 = d_0``, ``a_i = d_i − e_{i−1}²/a_{i−1}`` and right ones

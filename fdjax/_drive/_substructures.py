@@ -368,7 +368,7 @@ class Carriage(eqx.Module):
             )
 
     @property
-    def heights(self) -> Float[Array, 3]:
+    def heights(self) -> Float[Array, " 3"]:
         """Heights of (nut, scale, tool)."""
         return jnp.stack([self.nut_height, self.scale_height, self.tool_height])
 
@@ -382,7 +382,7 @@ class Carriage(eqx.Module):
         (the saddle alone when it carries a table)."""
         return self._modal_stiffness(_omega(omega, "Carriage.modal_stiffness(omega=...)"))
 
-    def receptance(self, omega) -> list[list[Complex[Array, ...]]]:
+    def receptance(self, omega) -> list[list[Complex[Array, "*shape"]]]:
         """Receptance over (x_n, x_2, x_3) per axial force at those points (m/N), as entries."""
         out = self._receptance(_omega(omega, "Carriage.receptance(omega=...)"))
         return _checks.finite_tree(out, "Carriage.receptance(...)")

@@ -11,7 +11,7 @@ and a *notch-filter* part, which removes high modes (paper Eqs. (3) and (4)):
 
 The English text of the paper drops one ``s`` from Eq. (3) (it prints
 ``s(cos φ + ω sin φ)``, which is dimensionally wrong); the form above is the one of the Chinese
-edition and of DESIGN.md §2. Frequencies are in rad/s and phases in rad (SI inside); only
+edition. Frequencies are in rad/s and phases in rad (SI inside); only
 ``frf(freq_hz)`` takes Hz.
 
 Each filter says which of its second-order sections are in parallel (the peaks) and which in
@@ -229,7 +229,7 @@ class AbstractFilter(eqx.Module):
         return self.discretize(period, method).to_sos()
 
 class PeakFilter(AbstractFilter):
-    r"""Peak filter(s), paper Eq. (3) (corrected, DESIGN.md §2):
+    r"""Peak filter(s), paper Eq. (3) (as corrected below):
 
         G_pf(s) = 1 + Σ_{i=1}^{m} K_i · s (s cos φ_i + ω_i sin φ_i) / (s² + 2 ξ_i ω_i s + ω_i²).
 

@@ -66,7 +66,7 @@ quantities with respect to the data pass through the refinement by the implicit 
 theorem (``optimistix.ImplicitAdjoint``); the vector-fitting start carries no gradient,
 which is exact because the minimiser does not depend on where the iteration starts.
 
-**Resonant phase** (DESIGN.md §2, Table 1). For the term of mode :math:`r`,
+**Resonant phase** (paper Table 1, Fig. 12). For the term of mode :math:`r`,
 :math:`T_r(\omega) = R_r/(i\omega-\lambda_r) + R_r^*/(i\omega-\lambda_r^*)
 = (2\,\mathrm{Re}R_r\,i\omega - 2\,\mathrm{Re}(R_r\lambda_r^*)) /
 (\omega_r^2-\omega^2+2i\zeta_r\omega_r\omega)`, the resonant phase is

@@ -9,7 +9,8 @@ For every channel :math:`k` and :math:`s = i\omega`,
 
 with natural frequency :math:`|\lambda_r|/2\pi`, damping ratio
 :math:`-\mathrm{Re}\lambda_r/|\lambda_r|` and the resonant phase :math:`\arg T_r(\omega_r)`
-of each mode's own term :math:`T_r`, wrapped to :math:`(-360°, 0°]` (DESIGN.md §2).
+of each mode's own term :math:`T_r(i\omega) = R_r/(i\omega-\lambda_r) +
+\bar R_r/(i\omega-\bar\lambda_r)`, wrapped to :math:`(-360°, 0°]` (paper Table 1, Fig. 12).
 """
 
 from __future__ import annotations

@@ -217,7 +217,8 @@ def identify_modes(
     the residues solved exactly (see the ``fdjax._modal`` docstring for the reasons). Returns
     the modes sorted by frequency with :math:`f_r = |\lambda_r|/2\pi`,
     :math:`\zeta_r = -\mathrm{Re}\lambda_r/|\lambda_r|` and the resonant phase
-    :math:`\arg T_r(\omega_r)` of each mode's own term (DESIGN.md §2), in (-360°, 0°].
+    :math:`\arg T_r(\omega_r)` of each mode's own term :math:`T_r(i\omega) = R_r/(i\omega -
+    \lambda_r) + \bar R_r/(i\omega - \bar\lambda_r)` (paper Table 1), in (-360°, 0°].
 
     Jit-able and vmap-able over positions (fixed sizes; ``n_modes`` and the options are
     static): ``jax.vmap(lambda h: identify_modes(freq_hz, h, 5))(frf_batch)``, or
@@ -240,7 +241,7 @@ def identify_modes(
       guideways has the rigid body :math:`i_{sc}/(s(J_\text{eq}s+c_\text{eq}))`, a pole at
       0 and one at :math:`-c_\text{eq}/J_\text{eq}` (a few rad/s, below the band), which
       without a real pole bends a complex pair (mode 1) into it. Default: 1 without
-      ``n_modes``, 0 with it (as before).
+      ``n_modes``, 0 with it.
     - ``upper_residual``: fit the constant :math:`d_k` for modes above the band.
     - ``weights``: positive weights :math:`w`, broadcastable to ``frf``; default
       :math:`1/|H|` (relative error).

@@ -61,7 +61,8 @@ class Simulation(eqx.Module):
             spectral radius of the one-step transition matrix (works under jit and vmap);
             ≥ 0 makes ``result`` ``unstable`` even before the run has grown past
             ``error_bound``.  None for the moving table.
-        period: the output period (s, static).
+        travel_m: the drive's travel (m, static; ±∞ for a StateSpace plant), for the
+            out-of-travel message.
     """
 
     t: Float[Array, "*batch n"]

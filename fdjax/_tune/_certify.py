@@ -45,7 +45,8 @@ class Certificate(eqx.Module):
         positions_m: the grid (m).
         stable: the sampled closed loop is stable at each position.
         growth_rate: growth rate of the least stable pole (1/s; negative when stable).
-        gain_margin_db, phase_margin_deg, modulus_margin: the least over the break points.
+        gain_margin_db, phase_margin_deg, modulus_margin: the least over the break points (of
+            |GM| in dB and |PM| in degrees: a margin below 0 dB or 0° counts by its size).
         requirements: (GM_min dB, PM_min °, MM_min).
         passed: per position, stable with every margin met.
     """

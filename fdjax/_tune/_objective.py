@@ -1,5 +1,5 @@
 r"""The tuning objective: RMS tracking error of the sampled loop plus smooth robustness
-penalties (paper Sec. 4.2, Figs. 16–18).
+penalties (paper Sec. 5, Figs. 16–18).
 
 At a table position Y the drive's twin is built once and shared by a sampled-data simulation
 of the reference motion and the open loops on the unit circle:

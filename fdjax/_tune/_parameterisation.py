@@ -121,8 +121,9 @@ class MCMBounds(eqx.Module):
         ξ = ξ_lo (ξ_hi/ξ_lo)^{σ(θ₂)},    φ = φ_max tanh θ₃,
         ω_nf = ω_lo (ω_hi/ω_lo)^{σ(θ₄)}, ζ_d = ζ_lo (ζ_hi/ζ_lo)^{σ(θ₅)},  ζ_n = ζ_d d_min^{σ(θ₆)},
 
-    with ω_hi = ``nyquist_fraction`` · π/T below the Nyquist frequency of the servo period T
-    (paper Eqs. (3)–(4) for the filters).  Every θ gives a filter the sampled loop can run
+    with (ω_lo, ω_hi) = 2π ``freq_hz``, ω_hi below the Nyquist frequency π/T of the servo
+    period T (``for_servo`` sets ``freq_hz[1]`` = ``nyquist_fraction`` × Nyquist; paper
+    Eqs. (3)–(4) for the filters).  Every θ gives a filter the sampled loop can run
     (``discretize`` needs ω T < π) and a notch of depth ζ_n/ζ_d < 1.
 
     Attributes (static numbers; build with ``MCMBounds.for_servo(servo)`` or directly):
@@ -336,6 +337,9 @@ class PIDParameterisation(AbstractParameterisation):
     static scales; θ = (0, 0, 0, ·, 1, 1) is the reference PID.  With ``feedforward=False``
     k_ffv = k_ffa = 0 whatever θ₄, θ₅ (a feedback-only design).
 
+    Built from the reference :class:`fdjax.PIDLoop`; ``servo`` (default ``Servo()``) sets the
+    default ``wd_hz`` = (10 Hz, 0.9 × its Nyquist frequency).
+
     Attributes:
         reference: (k_p, k_i, k_d, k_ffv, k_ffa) of the reference PID (static).
         wd_hz: (low, high) bound of ω_d/2π (Hz), static.
@@ -350,6 +354,7 @@ class PIDParameterisation(AbstractParameterisation):
                  wd_hz: tuple[float, float] | None = None, feedforward: bool = True):
         where = "PIDParameterisation(reference=...)"
         instance(reference, PIDLoop, where)
+        feedforward = static_bool(feedforward, "PIDParameterisation(feedforward=...)")
         vals = [reference.kp, reference.ki, reference.kd, reference.k_ffv, reference.k_ffa]
         if not feedforward:
             vals = vals[:3] + [1.0, 1.0]

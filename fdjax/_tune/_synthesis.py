@@ -38,6 +38,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+from jaxtyping import ArrayLike, Float
 
 from .. import _checks
 from .._checks import instance
@@ -86,13 +87,14 @@ WIDE_MARGIN_WIDTH = 0.05
 
 
 def tuning_motion() -> Trajectory:
-    """The motion the controllers are tuned on: a 1 mm reciprocating stroke at 50 mm/s,
-    2 m/s², 400 m/s³ (0.1 s), the short-stroke motion of Figs. 16–17 shortened."""
+    """The motion the controllers are tuned on: a 1 mm reciprocating stroke, one 0.1 s cycle,
+    limits 50 mm/s, 2 m/s², 400 m/s³ (the speed peaks at 40 mm/s: the stroke is too short to
+    reach the limit), the short-stroke motion of paper Figs. 16–17 shortened."""
     return reciprocating(stroke=1e-3, v_max=0.05, a_max=2.0, j_max=400.0, cycles=1)
 
 
 def tuning_objective(servo: Servo | None = None, *, feedforward: bool = False,
-                     kept_modes: int = 6, margin_width: float = 0.05) -> Objective:
+                     kept_modes: int | None = 6, margin_width: float = 0.05) -> Objective:
     """The objective of the synthesis: :class:`Objective` on :func:`tuning_motion`, margins on
     400 frequencies from 5 Hz to 3.9 kHz, the twin with ``kept_modes`` modes.  The error scale
     e_ref is 100 µm for feedback-only loops (their RMS error on this motion is 85–200 µm) and
@@ -238,9 +240,12 @@ def synthesise(
     steps with wide penalties), ``shared_steps`` for the common gains; ``e2e_steps`` L-BFGS
     steps end to end, on ``e2e_positions`` positions evenly over the travel (every 50 mm by
     default, most of them between the six design positions); ``robust_steps`` L-BFGS steps for
-    the robust MCM.  Between stages the compiled
-    programs are released when the process holds many memory maps (each program maps its
-    machine code; a process may hold 65530)."""
+    the robust MCM; ``network_steps`` Adam steps fit the network to the six designs
+    (:func:`fit_network`, backpropagation), and ``train_gains`` (default True) lets the
+    end-to-end stage train the common feedback gains with the network.  ``servo`` defaults to
+    :func:`reference_servo`; ``progress`` prints each stage's progress to stderr.  Between
+    stages the compiled programs are released when the process holds many memory maps (each
+    program maps its machine code; a process may hold 65530)."""
     drive = reference_drive() if drive is None else drive
     instance(drive, BallScrewDrive, "synthesise(drive=...)")
     servo = reference_servo() if servo is None else servo
@@ -394,7 +399,7 @@ def robust_mcm(par: DoubleLoopParameterisation, objective: Objective, drive: Bal
 def evaluate(
     controllers: dict[str, AbstractController],
     drive: BallScrewDrive,
-    positions_m,
+    positions_m: Float[ArrayLike, " n"],
     *,
     servo: Servo | None = None,
     motion: Trajectory | None = None,
@@ -404,7 +409,9 @@ def evaluate(
     twin, stability and the exact sampled margins of each controller at ``positions_m``
     (:func:`certify`'s checks).  Per controller: ``rms_error_um`` (None where unstable),
     ``stable``, ``gain_margin_db``, ``phase_margin_deg``, ``modulus_margin`` (lists over the
-    positions) and ``certificate``.  Controllers of the same kind share one compiled program."""
+    positions) and ``certificate``.  Controllers of the same kind share one compiled program.
+    ``servo`` defaults to :func:`reference_servo`; ``progress`` prints a line per controller to
+    stderr."""
     if not isinstance(controllers, dict) or not controllers:
         raise TypeError("`evaluate(controllers=...)` must be a non-empty dict of name → "
                         f"controller, got {type(controllers).__name__}")
