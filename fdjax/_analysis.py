@@ -280,7 +280,7 @@ def _below_nyquist(f, kind, method, servo, fn: str):
 # ------------------------------------------------------------------------------------ public
 def open_loop(
     controller: AbstractController,
-    plant,
+    plant: BallScrewDrive | StateSpace | Complex[ArrayLike, "*pos freq 3 2"],
     freq_hz: Float[ArrayLike, " freq"],
     *,
     servo: Servo = Servo(),
@@ -390,7 +390,7 @@ def _stability_margins_jit(f, L):
 
 def loop_margins(
     controller: AbstractController,
-    plant,
+    plant: BallScrewDrive | StateSpace | Complex[ArrayLike, "*pos freq 3 2"],
     freq_hz: Float[ArrayLike, " freq"],
     *,
     servo: Servo = Servo(),
@@ -453,7 +453,7 @@ _loop_margins_jit = eqx.filter_jit(_loop_margins_traced)
 
 def closed_loop(
     controller: AbstractController,
-    plant,
+    plant: BallScrewDrive | StateSpace | Complex[ArrayLike, "*pos freq 3 2"],
     *,
     servo: Servo = Servo(),
     method: AbstractLoopModel = SampledData(),
@@ -488,7 +488,7 @@ _closed_loop_jit = eqx.filter_jit(_closed_loop_traced)
 
 def check_stability(
     controller: AbstractController,
-    plant,
+    plant: BallScrewDrive | StateSpace | Complex[ArrayLike, "*pos freq 3 2"],
     *,
     servo: Servo = Servo(),
     method: AbstractLoopModel = SampledData(),
@@ -553,7 +553,7 @@ _stability_jit = eqx.filter_jit(_stability_traced)
 
 def gain_headroom(
     controller: AbstractController,
-    plant,
+    plant: BallScrewDrive | StateSpace | Complex[ArrayLike, "*pos freq 3 2"],
     *,
     position_m: Float[ArrayLike, "*pos"] | None = None,
     servo: Servo = Servo(),

@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from jaxtyping import ArrayLike, Float
 
 from .._checks import LONGEST_TRAVEL_M, concrete_float, instance, static_bool
 from ._blocks import FILTER_METHODS
@@ -23,7 +24,8 @@ __all__ = ["to_python_control"]
 
 
 
-def to_python_control(controller: AbstractController, position_m=None, *,
+def to_python_control(controller: AbstractController,
+                      position_m: Float[ArrayLike, ""] | None = None, *,
                       servo: Servo = Servo(), discrete: bool = True,
                       filter_method: str = "fitted", form: str = "ss"):
     """The law of ``controller`` at ``position_m`` (m; needed by a scheduled controller) as a

@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import equinox as eqx
 import numpy as np
+from jaxtyping import ArrayLike, Complex, Float
 
 # A zero of σ whose imaginary part is below this fraction of its modulus is a real pole.
 _REAL_TOL = 1e-6
@@ -371,8 +372,8 @@ def _order_options(fn, n_freq, n_fixed, max_modes, vf_iterations, freq_tol, damp
 
 
 def stabilisation_diagram(
-    freq_hz,
-    frf,
+    freq_hz: Float[ArrayLike, " freq"],
+    frf: Complex[ArrayLike, " freq *channel"],
     *,
     max_modes: int | None = None,
     real_poles: int = 1,

@@ -38,6 +38,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .. import _checks
+from .._control._controllers import AbstractController
 from .._drive._model import BallScrewDrive
 from ._local import LocalTuning, _check_common, _start, _terms_at
 from ._objective import Objective
@@ -178,7 +179,7 @@ def tune_newton(
     objective: Objective,
     drive: BallScrewDrive,
     positions_m: Float[ArrayLike, " n"],
-    start,
+    start: AbstractController | Float[ArrayLike, " p"] | Float[ArrayLike, "n p"],
     *,
     steps: int = 60,
     radius: float = 0.3,

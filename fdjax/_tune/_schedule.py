@@ -240,7 +240,8 @@ class InterpolatedLoop(AbstractController):
     theta: Float[Array, "n 7"]
     bounds: MCMBounds
 
-    def __init__(self, loop: DoubleLoop, positions_m, theta, bounds: MCMBounds):
+    def __init__(self, loop: DoubleLoop, positions_m: Float[ArrayLike, " n"],
+                 theta: Float[ArrayLike, "n 7"], bounds: MCMBounds):
         _checks.instance(loop, DoubleLoop, "InterpolatedLoop(loop=...)")
         _checks.instance(bounds, MCMBounds, "InterpolatedLoop(bounds=...)")
         y = _checks.real_array(positions_m, "InterpolatedLoop(positions_m=...)")

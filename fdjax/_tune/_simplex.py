@@ -27,6 +27,7 @@ import numpy as np
 from jaxtyping import ArrayLike, Float
 
 from .. import _checks
+from .._control._controllers import AbstractController
 from .._drive._model import BallScrewDrive
 from ._local import LocalTuning, _check_common, _settled, _start, _terms_at
 from ._objective import Objective
@@ -139,7 +140,7 @@ def tune_simplex(
     objective: Objective,
     drive: BallScrewDrive,
     positions_m: Float[ArrayLike, " n"],
-    start,
+    start: AbstractController | Float[ArrayLike, " p"] | Float[ArrayLike, "n p"],
     *,
     evaluations: int = 3000,
     step: float = 0.1,
