@@ -21,7 +21,7 @@ The synthesis objective's penalties (w = 0.01) weigh on a design while its margi
 few hundredths above their requirements, so its designs settle there and keep error in hand;
 on the sharper objective a design goes up to its requirements.  The design is in another
 basin than the schedules' (higher k_p, lower k_v, half the k_i, a broad peak filter near
-420 Hz instead of a sharp one near 825 Hz).  Its error is flat over the travel (75.05 µm at
+420 Hz instead of a sharp one near 825 Hz).  Its error is flat over the travel (75.05–75.07 µm at
 100–700 mm), its margins are not: it keeps them at 600–700 mm, not at 500 mm, and toward the
 motor end it loses them fast (modulus margin about 0.1 and gain margin about 1 dB at 100 mm).
 A schedule that used it would need its gains scheduled too; one started from it (a network
