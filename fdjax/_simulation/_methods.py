@@ -37,7 +37,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from .._checks import static_number
+from .._checks import is_concrete, static_number
 from .._control._blocks import DEFAULT_PADE_ORDER, FILTER_METHODS, pade_order
 from .._control._interconnect import (
     SampledParts,
@@ -145,10 +145,12 @@ class SampledData(AbstractLoopModel):
                  "an fdjax.StateSpace (the twin at one position: fdjax.state_space(drive, "
                  "position_m))")
         instance(servo, Servo, "SampledData.sharing(servo=...)")
-        # compiled (once per shapes), so that an eager call does not run the matrix
-        # exponential's loops op by op
-        return eqx.tree_at(lambda m: m.shared, self, _parts(self, controller, plant, servo),
-                           is_leaf=lambda x: x is None)
+        # eagerly, compiled (once per shapes), so that the matrix exponential's loops do not
+        # run op by op; traced, part of the caller's program
+        leaves = jax.tree_util.tree_leaves(eqx.filter((controller, plant, servo), eqx.is_array))
+        eager = all(is_concrete(x) for x in leaves)
+        parts = (_parts if eager else SampledData.parts)(self, controller, plant, servo)
+        return eqx.tree_at(lambda m: m.shared, self, parts, is_leaf=lambda x: x is None)
 
     def closed_loop(self, controller, plant, servo) -> LTI:
         return sampled_closed_loop_matrices(
