@@ -22,7 +22,7 @@ from .. import _checks
 from .._control._controllers import AbstractController
 from .._drive._model import BallScrewDrive
 from ._objective import Objective, ObjectiveTerms
-from ._optimisers import optimiser_or
+from ._optimisers import checked_optimiser, optimiser_or
 from ._parameterisation import AbstractParameterisation
 
 __all__ = ["LocalTuning", "RobustTuning", "tune_local", "tune_robust", "tune_shared_gains",
@@ -371,9 +371,7 @@ def descend(loss, params, optimiser, steps: int, *, chunk: int = 25, key=None,
     object and the same shapes."""
     steps = _checks.static_int(steps, "descend(steps=...)", 1)
     chunk = _checks.static_int(chunk, "descend(chunk=...)", 1)
-    if not callable(getattr(optimiser, "update", None)):
-        raise TypeError(f"`descend(optimiser=...)` must be an optax GradientTransformation "
-                        f"(e.g. optax.adam(1e-2)), got {optimiser!r}")
+    optimiser = checked_optimiser(optimiser, "descend(optimiser=...)")
     with jax.numpy_dtype_promotion("standard"):
         state = _settled(optimiser.init(params))
     best, best_v = params, _settled(jnp.asarray(jnp.inf))

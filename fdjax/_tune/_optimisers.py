@@ -6,7 +6,7 @@ import functools
 
 import optax
 
-__all__ = ["default_optimiser", "optimiser_or"]
+__all__ = ["default_optimiser", "optimiser_or", "checked_optimiser"]
 
 
 @functools.cache
@@ -18,13 +18,20 @@ def default_optimiser(name: str, *args) -> optax.GradientTransformation:
     return getattr(optax, name)(*args)
 
 
-def optimiser_or(optimiser, where: str, name: str, *args) -> optax.GradientTransformation:
-    """``optimiser``, checked to be an optax transformation (a ``TypeError`` naming ``where``
-    otherwise), or the default :func:`default_optimiser` ``(name, *args)`` when it is None."""
-    if optimiser is None:
-        return default_optimiser(name, *args)
+def checked_optimiser(optimiser, where: str, example: str = "optax.adam(0.01)"):
+    """``optimiser`` when it is an optax transformation (``init`` and ``update``), else a
+    ``TypeError`` naming ``where`` with ``example``."""
     if not (callable(getattr(optimiser, "init", None))
             and callable(getattr(optimiser, "update", None))):
-        raise TypeError(f"`{where}` must be an optax GradientTransformation (e.g. "
-                        f"optax.{name}({', '.join(map(repr, args))})), got {optimiser!r}")
+        raise TypeError(f"`{where}` must be an optax GradientTransformation (e.g. {example}), "
+                        f"got {optimiser!r}")
     return optimiser
+
+
+def optimiser_or(optimiser, where: str, name: str, *args) -> optax.GradientTransformation:
+    """``optimiser``, checked (:func:`checked_optimiser`), or the default
+    :func:`default_optimiser` ``(name, *args)`` when it is None."""
+    if optimiser is None:
+        return default_optimiser(name, *args)
+    return checked_optimiser(optimiser, where,
+                             f"optax.{name}({', '.join(map(repr, args))})")
