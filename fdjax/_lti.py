@@ -61,10 +61,12 @@ class LTI(eqx.Module):
 
     @property
     def n_states(self) -> int:
+        """The number of states n (A is n × n)."""
         return self.A.shape[-1]
 
     @property
     def is_discrete(self) -> bool:
+        """Whether the system is discrete (it has a sample period ``dt``)."""
         return self.dt is not None
 
     def transfer(self, x: ArrayLike) -> Complex[Array, "*shape p m"]:

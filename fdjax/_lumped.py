@@ -77,6 +77,7 @@ class LumpedModel(eqx.Module):
 
     @property
     def size(self) -> int:
+        """The number of degrees of freedom (the mass matrix is size × size)."""
         return self.mass.shape[-1]
 
     def dynamic_stiffness(self, omega: Float[ArrayLike, "*b"]) -> Complex[Array, "*b n n"]:

@@ -94,6 +94,7 @@ class AbstractLoopModel(eqx.Module):
 
     @property
     def name(self) -> str:
+        """The model's class name (as printed in reports)."""
         return type(self).__name__
 
 
@@ -187,9 +188,22 @@ class SampledData(AbstractLoopModel):
 
     # -------------------------------------------------------------- runs
     def output_period(self, servo) -> float:
+        """The spacing of the run's output samples (s): the servo's period."""
         return float(servo.period)
 
     def run(self, controller, plant, W, servo, bound):
+        r"""One run of the closed loop around the twin ``plant`` (the work of
+        :func:`fdjax.simulate`, which builds ``W`` and reads the result): the discrete
+        recursion s_{k+1} = A s_k + B w_k, y_k = C s_k + D w_k from s_0 = 0, one row of ``W``
+        (r, ṙ, r̈, F3) per period.
+
+        Returns:
+            (Y, failed_at, result, growth): the outputs (θ1, x2, x3, T1) per sample, frozen
+            from the first sample whose state is non-finite or whose error passes ``bound``
+            (m); that sample's index (len(W) when none); the result code
+            (:data:`fdjax.RESULTS`: successful, diverged or unstable); the growth rate of the
+            least stable pole (1/s).
+        """
         sl = self.closed_loop(controller, plant, servo)
         Y, finite = lifted_outputs(sl.A, sl.B, sl.C, sl.D, W)
         failed_at, Y = first_bad(finite, Y, W, bound)
@@ -438,6 +452,8 @@ class PadeODE(AbstractLoopModel):
 
     @property
     def continuous(self) -> Continuous:
+        """The continuous model (same Padé order) whose closed and open loops this model
+        integrates."""
         return Continuous(self.pade_order)
 
     def closed_loop(self, controller, plant, servo) -> LTI:
@@ -451,6 +467,7 @@ class PadeODE(AbstractLoopModel):
                                               position_m)
 
     def output_period(self, servo) -> float:
+        """The spacing of the run's output samples (s): ``dt``, or the servo's period."""
         return float(servo.period) if self.dt is None else float(self.dt)
 
     def _solve(self, term, y0, t, dt: float):
@@ -491,6 +508,14 @@ class PadeODE(AbstractLoopModel):
         return Y, failed_at, result
 
     def run(self, controller, plant, W, servo, bound):
+        r"""One run of the continuous closed loop around the twin ``plant`` (the work of
+        :func:`fdjax.simulate`): ẋ = A x + B w(t), y = C x + D w from x(0) = 0, with w the
+        first-order hold of the rows of ``W`` (r, ṙ, r̈, F3), by ``diffrax.diffeqsolve``.
+
+        Returns:
+            (Y, failed_at, result, growth) as :meth:`fdjax.SampledData.run`, with
+            ``RESULTS.solver_failed`` when the solver stops.
+        """
         dt = self.output_period(servo)
         cl = self.closed_loop(controller, plant, servo)
         t = jnp.arange(W.shape[0], dtype=jnp.float64) * dt
@@ -503,6 +528,15 @@ class PadeODE(AbstractLoopModel):
         return Y, failed_at, result, growth
 
     def run_moving(self, controller, moving, W, positions, mid_positions, servo, bound):
+        r"""One run with the table moving (:func:`fdjax.simulate` with ``moving=True``): the
+        continuous loop rebuilt around the projected plant wherever the solver evaluates it,
+        ẋ = A(Y(t)) x + B(Y(t)) w(t), Y(t) = Y₀ + r(t) (:class:`fdjax.ExponentialFOH`: at each
+        step's midpoint).
+
+        Returns:
+            (Y, failed_at, result) as :meth:`fdjax.SampledData.run`, without the growth rate
+            (a time-varying loop has no poles).
+        """
         del mid_positions  # the exponential midpoint rule takes the step's midpoint itself
         dt = self.output_period(servo)
         t = jnp.arange(W.shape[0], dtype=jnp.float64) * dt
