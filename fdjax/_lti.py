@@ -69,7 +69,7 @@ class LTI(eqx.Module):
         """Whether the system is discrete (it has a sample period ``dt``)."""
         return self.dt is not None
 
-    def transfer(self, x: ArrayLike) -> Complex[Array, "*shape p m"]:
+    def transfer(self, x: Complex[ArrayLike, "*shape"]) -> Complex[Array, "*shape p m"]:
         """C (xI − A)⁻¹ B + D at complex ``x`` of any shape (x = s, or z for a discrete system)."""
         return transfer(self.A, self.B, self.C, self.D, x)
 

@@ -101,7 +101,8 @@ class Trajectory(eqx.Module):
     jerk: Float[Array, " k"]
     r0: Float[Array, ""]
 
-    def __init__(self, t_knots: ArrayLike, jerk: ArrayLike, r0: ArrayLike = 0.0):
+    def __init__(self, t_knots: Float[ArrayLike, " knots"], jerk: Float[ArrayLike, " segments"],
+                 r0: Float[ArrayLike, ""] = 0.0):
         t_knots = _real(t_knots, "Trajectory(t_knots=...)", 1)
         jerk = _real(jerk, "Trajectory(jerk=...)", 1)
         r0 = _real(r0, "Trajectory(r0=...)", 0)
@@ -141,7 +142,7 @@ class Trajectory(eqx.Module):
         return _knot_states(self)
 
     def evaluate(
-        self, t: ArrayLike
+        self, t: Float[ArrayLike, "*t"]
     ) -> tuple[Float[Array, "*t"], Float[Array, "*t"], Float[Array, "*t"], Float[Array, "*t"]]:
         r"""Position, velocity, acceleration and jerk (r, ṙ, r̈, j) at times ``t`` (s), any shape.
 
@@ -155,7 +156,7 @@ class Trajectory(eqx.Module):
         t = finite(t.astype(jnp.float64), "Trajectory.evaluate(t=...)")
         return _evaluate(self, t)
 
-    def sample(self, t: ArrayLike) -> Float[Array, "*t 3"]:
+    def sample(self, t: Float[ArrayLike, "*t"]) -> Float[Array, "*t 3"]:
         """(r, ṙ, r̈) at times ``t`` stacked on a last axis of size 3, e.g. a simulation input.
 
         For n samples at a step dt use ``t = dt * jnp.arange(n)``.

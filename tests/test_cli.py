@@ -110,7 +110,7 @@ def test_demo_writes_figures(tmp_path):
     # the robust MCM's error (83.59–83.69 µm) is below the end-to-end schedule's
     # (84.34–84.60 µm) at every position; the MCM tuned at 115 mm and held
     # fixed does not (modulus margin 0.526 → 0.390, below 0.5 from 220 mm; GM 5.73 dB at
-    # 700 mm) but stays stable with its error flat at 68.6–68.7 µm, below the schedules'; the
+    # 700 mm) but stays stable with its error flat at 68.5–68.7 µm, below the schedules'; the
     # PID tuned at 115 mm likewise (modulus margin 0.241, GM 3.89 dB at 700 mm); end to end is
     # 0.965–0.967× the backpropagation schedule's error at every position and 0.694× the
     # robust PID's in the worst case
@@ -490,3 +490,24 @@ def test_rigid_feedforward_errors():
     with pytest.raises(TypeError, match=r"`rigid_feedforward\(servo=\.\.\.\)` must be an "
                                         r"fdjax.Servo, got float"):
         rigid_feedforward(fdjax.reference_drive(), 1.2)
+
+
+def test_progress_bar_in_a_log_and_on_a_terminal(monkeypatch, capsys):
+    """The tuners' progress: a line per report in a log; on a terminal one line rewritten in
+    place, ended by the last report or by the next message."""
+    from fdjax import _progress
+
+    monkeypatch.setattr(_progress, "_terminal", lambda: False)
+    _progress.bar("tune_local", 5, 20, "J mean 1.5, max 2")
+    _progress.bar("tune_local", 20, 20, "J mean 1.2, max 1.4")
+    assert capsys.readouterr().err == (
+        "tune_local [█████░░░░░░░░░░░░░░░] step 5/20, J mean 1.5, max 2\n"
+        "tune_local [████████████████████] step 20/20, J mean 1.2, max 1.4\n")
+    monkeypatch.setattr(_progress, "_terminal", lambda: True)
+    _progress.bar("tune_simplex", 1, 3, "best J 2", "evaluation")
+    _progress.say("next stage")
+    _progress.bar("tune_simplex", 3, 3, "best J 1", "evaluation")
+    _progress.say("done")
+    assert capsys.readouterr().err == (
+        "\r\x1b[2Ktune_simplex [███████░░░░░░░░░░░░░] evaluation 1/3, best J 2\nnext stage\n"
+        "\r\x1b[2Ktune_simplex [████████████████████] evaluation 3/3, best J 1\ndone\n")

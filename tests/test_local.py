@@ -10,6 +10,7 @@ import pytest
 from compile_events import compilations
 
 import fdjax
+from fdjax._tune._local import _terms_at
 
 BOUNDS = fdjax.MCMBounds.for_servo(fdjax.Servo())
 
@@ -35,6 +36,13 @@ def test_local_tuning_improves_every_position():
     best = np.asarray(r.terms.total)
     assert np.all(best < 0.5 * h[0]), (h[0], best)
     assert np.all(np.asarray(r.terms.stable))
+    # J falls mostly through the margin penalties; the tracking error falls too (measured
+    # 2.45 → 2.14 and 2.64 → 2.41 µm, 0.87× and 0.91×): the start's terms from the program
+    # that gave the result's
+    theta0 = np.stack([np.asarray(par.from_controller(start))] * 2)
+    rms0 = np.asarray(_terms_at(par, obj.resolved(drive), drive, theta0, pos).rms_error_m)
+    rms = np.asarray(r.terms.rms_error_m)
+    assert np.all(rms < 0.95 * rms0), (rms0, rms)
     for i, p in enumerate(pos):
         c = par.to_controller(r.best_theta[i])
         assert bool(fdjax.check_stability(c, drive, position_m=p).stable)

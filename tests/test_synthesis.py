@@ -172,7 +172,6 @@ def test_certify_is_loop_margins_and_stability_at_each_position():
                 and min(abs(float(L.phase_margin_deg)) for L in loops) >= 30.0)
         assert bool(cert.passed[k]) == kept, k
     assert not cert.passed.all() and cert.passed.any()  # both verdicts are exercised here
-    assert cert.ok == bool(np.all(cert.passed))
     assert ("certified at 3 positions" in cert.message) == cert.ok
     y_gm, v_gm = cert.worst("gain_margin_db")
     assert f"least gain margin {v_gm:.3g} dB at {y_gm * 1e3:.0f} mm (required 6 dB)" in cert.message

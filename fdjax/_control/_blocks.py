@@ -208,7 +208,7 @@ def pade_order(order, where: str) -> int:
     return _checks.static_int(order, where, 1, 16)
 
 
-def pade(tau: ArrayLike, order: int) -> LTI:
+def pade(tau: Float[ArrayLike, ""], order: int) -> LTI:
     r"""State-space realisation of the [n/n] Padé approximant of the delay e^{−sτ}.
 
         e^{−x} ≈ Q_n(−x)/Q_n(x),   Q_n(x) = Σ_{k=0}^{n} (2n−k)! n! / ((2n)! k! (n−k)!) x^k,

@@ -113,7 +113,7 @@ class AbstractFilter(eqx.Module):
         (pn, _, _), (sn, _, _) = self._banks()
         return pn.shape[-2] + sn.shape[-2]
 
-    def transfer(self, s: ArrayLike) -> Complex[Array, "*shape"]:
+    def transfer(self, s: Complex[ArrayLike, "*shape"]) -> Complex[Array, "*shape"]:
         """G(s) at complex ``s`` of any shape (real input is promoted to complex128)."""
         s = to_complex(s)
         (pn, pd, _), (sn, sd, _) = self._banks()
@@ -122,7 +122,7 @@ class AbstractFilter(eqx.Module):
         series = jnp.prod(_biquad_s(sn, sd, x), axis=-1)
         return parallel * series
 
-    def frf(self, freq_hz: ArrayLike) -> Complex[Array, " freq"]:
+    def frf(self, freq_hz: Float[ArrayLike, " freq"]) -> Complex[Array, " freq"]:
         """Frequency response G(i 2π f) on a positive, increasing grid ``freq_hz`` (Hz)."""
         name = type(self).__name__
         f = frequency_grid(freq_hz, f"{name}.frf(freq_hz=...)")
@@ -143,7 +143,7 @@ class AbstractFilter(eqx.Module):
             sys = series(sys, LTI(A2[q], B2[q], C2[q], D2[q].reshape(1, 1)))
         return sys
 
-    def discretize(self, dt: ArrayLike, method: str = "fitted") -> DiscreteFilter:
+    def discretize(self, dt: Float[ArrayLike, ""], method: str = "fitted") -> DiscreteFilter:
         r"""Discrete filter (paper Eqs. (3)–(4)) for servo period ``dt`` (s), section by
         section, structure kept.
 
@@ -221,7 +221,7 @@ class AbstractFilter(eqx.Module):
         )
 
 
-    def to_sos(self, period: ArrayLike, method: str = "fitted") -> np.ndarray:
+    def to_sos(self, period: Float[ArrayLike, ""], method: str = "fitted") -> np.ndarray:
         r"""The discrete filter a servo drive loads for period ``period`` (s): a cascade of
         standard biquads, rows [b0, b1, b2, 1, a1, a2] in ``scipy.signal.sosfilt``'s convention
         (a new, writable float64 NumPy array), equal to what the sampled loop runs:
@@ -250,7 +250,8 @@ class PeakFilter(AbstractFilter):
     log_xi: Float[Array, " m"]
     phi: Float[Array, " m"]
 
-    def __init__(self, K: ArrayLike, omega: ArrayLike, xi: ArrayLike, phi: ArrayLike):
+    def __init__(self, K: Float[ArrayLike, "*k"], omega: Float[ArrayLike, "*k"],
+                 xi: Float[ArrayLike, "*k"], phi: Float[ArrayLike, "*k"]):
         raw = {"K": K, "omega": omega, "xi": xi, "phi": phi}
         p = {k: _real_param(v, f"PeakFilter({k}=...)") for k, v in raw.items()}
         p["K"] = finite(p["K"], "PeakFilter(K=...)")
@@ -265,7 +266,8 @@ class PeakFilter(AbstractFilter):
 
     @classmethod
     def from_unconstrained(
-        cls, K: ArrayLike, log_omega: ArrayLike, log_xi: ArrayLike, phi: ArrayLike
+        cls, K: Float[ArrayLike, "*k"], log_omega: Float[ArrayLike, "*k"],
+        log_xi: Float[ArrayLike, "*k"], phi: Float[ArrayLike, "*k"]
     ) -> PeakFilter:
         """Build from unconstrained reals: ω = exp(log_omega), ξ = exp(log_xi)."""
         return cls(K, jnp.exp(jnp.asarray(log_omega)), jnp.exp(jnp.asarray(log_xi)), phi)
@@ -307,7 +309,8 @@ class NotchFilter(AbstractFilter):
     log_zeta_n: Float[Array, " n"]
     log_zeta_d: Float[Array, " n"]
 
-    def __init__(self, omega: ArrayLike, zeta_n: ArrayLike, zeta_d: ArrayLike):
+    def __init__(self, omega: Float[ArrayLike, "*k"], zeta_n: Float[ArrayLike, "*k"],
+                 zeta_d: Float[ArrayLike, "*k"]):
         raw = {"omega": omega, "zeta_n": zeta_n, "zeta_d": zeta_d}
         p = {k: _real_param(v, f"NotchFilter({k}=...)") for k, v in raw.items()}
         p = {k: positive(v, f"NotchFilter({k}=...)") for k, v in p.items()}
@@ -318,7 +321,8 @@ class NotchFilter(AbstractFilter):
 
     @classmethod
     def from_unconstrained(
-        cls, log_omega: ArrayLike, log_zeta_n: ArrayLike, log_zeta_d: ArrayLike
+        cls, log_omega: Float[ArrayLike, "*k"], log_zeta_n: Float[ArrayLike, "*k"],
+        log_zeta_d: Float[ArrayLike, "*k"]
     ) -> NotchFilter:
         """Build from unconstrained reals: ω = exp(log_omega), ζ = exp(log_zeta)."""
         e = lambda x: jnp.exp(jnp.asarray(x))

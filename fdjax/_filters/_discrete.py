@@ -334,7 +334,8 @@ class DiscreteFilter(eqx.Module):
     series_sos: Float[Array, "q k 6"]
     dt: Float[Array, ""]
 
-    def __init__(self, parallel_sos: ArrayLike, series_sos: ArrayLike, dt: ArrayLike):
+    def __init__(self, parallel_sos: Float[ArrayLike, "p 6"], series_sos: Float[ArrayLike, "q 6"],
+                 dt: Float[ArrayLike, ""]):
         par = _sos_array(parallel_sos, "DiscreteFilter(parallel_sos=...)")
         ser = _sos_array(series_sos, "DiscreteFilter(series_sos=...)", stages=True)
         self.dt = positive(real_scalar(dt, "DiscreteFilter(dt=...)"), "DiscreteFilter(dt=...)")
@@ -353,14 +354,14 @@ class DiscreteFilter(eqx.Module):
         q, k, _ = self.series_sos.shape
         return self.parallel_sos.shape[-2] + q * k
 
-    def transfer(self, z: ArrayLike) -> Complex[Array, "*shape"]:
+    def transfer(self, z: Complex[ArrayLike, "*shape"]) -> Complex[Array, "*shape"]:
         """G(z) at complex ``z`` of any shape."""
         zi = 1 / to_complex(z)
         parallel = 1 + jnp.sum(_section_response(self.parallel_sos, zi[..., None]), axis=-1)
         stages = jnp.sum(_section_response(self.series_sos, zi[..., None, None]), axis=-1)
         return parallel * jnp.prod(stages, axis=-1)
 
-    def frf(self, freq_hz: ArrayLike) -> Complex[Array, " freq"]:
+    def frf(self, freq_hz: Float[ArrayLike, " freq"]) -> Complex[Array, " freq"]:
         """Frequency response G(e^{i 2π f dt}) on a positive, increasing grid ``freq_hz`` (Hz)."""
         f = frequency_grid(freq_hz, "DiscreteFilter.frf(freq_hz=...)")
         z = jnp.exp(to_complex(2 * jnp.pi * f * self.dt) * 1j)
@@ -407,7 +408,7 @@ class DiscreteFilter(eqx.Module):
         return jnp.zeros((self.n_sections, 2), jnp.float64)
 
     def step(
-        self, state: Float[Array, "sections 2"], u_k: ArrayLike
+        self, state: Float[Array, "sections 2"], u_k: Float[ArrayLike, ""]
     ) -> tuple[Float[Array, "sections 2"], Float[Array, ""]]:
         """One sample: (state, u_k) → (next state, y_k), for a closed loop run step by step.
 
@@ -430,7 +431,7 @@ class DiscreteFilter(eqx.Module):
         return jnp.concatenate(new, axis=0), y
 
     def apply(
-        self, u: ArrayLike, state: Float[Array, "sections 2"] | None = None
+        self, u: Float[ArrayLike, " time"], state: Float[Array, "sections 2"] | None = None
     ) -> Float[Array, " time"]:
         """Filter a sampled signal ``u`` (1-D, period ``dt``) from ``state`` (zero by default).
 

@@ -8,7 +8,6 @@ steps run in a ``lax.scan`` in chunks (a progress line between chunks).
 
 from __future__ import annotations
 
-import sys
 import time
 
 import equinox as eqx
@@ -18,7 +17,7 @@ import numpy as np
 import optax
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from .. import _checks
+from .. import _checks, _progress
 from .._control._controllers import AbstractController
 from .._drive._model import BallScrewDrive
 from ._objective import Objective, ObjectiveTerms
@@ -119,8 +118,7 @@ def tune_local(
         done += k
         if progress:
             h = history[-1][-1]
-            print(f"{fn}: step {done}/{steps}, J mean {np.mean(h):.4g}, max {np.max(h):.4g}",
-                  file=sys.stderr, flush=True)
+            _progress.bar(fn, done, steps, f"J mean {np.mean(h):.4g}, max {np.max(h):.4g}")
     terms = _terms_at(parameterisation, objective, drive, best, y)
     evaluations = np.concatenate(evaluations)
     if optax.tree_utils.tree_get(state, "grad") is not None:
@@ -390,8 +388,8 @@ def descend(loss, params, optimiser, steps: int, *, chunk: int = 25, key=None,
         evals.append(np.asarray(n))
         done += k
         if progress:
-            print(f"{progress}: step {done}/{steps}, objective {float(v[-1]):.4g} "
-                  f"(best {float(best_v):.4g})", file=sys.stderr, flush=True)
+            _progress.bar(progress, done, steps,
+                          f"objective {float(v[-1]):.4g} (best {float(best_v):.4g})")
     return Descent(params, best, jnp.asarray(np.concatenate(hist)),
                    jnp.asarray(np.concatenate(auxs)), t_steps,
                    jnp.asarray(np.concatenate(evals)))

@@ -28,7 +28,6 @@ H ≈ ∇²J_m + B.  Each step then runs one simulation with its gradient per po
 
 from __future__ import annotations
 
-import sys
 import time
 
 import equinox as eqx
@@ -37,7 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from .. import _checks
+from .. import _checks, _progress
 from .._control._controllers import AbstractController
 from .._drive._model import BallScrewDrive
 from ._local import LocalTuning, _check_common, _start, _terms_at
@@ -287,8 +286,7 @@ def tune_newton(
             t_steps += time.perf_counter() - t0
         if progress and ((k + 1) % 10 == 0 or k + 1 == steps):
             jj = np.asarray(j)
-            print(f"{fn}: step {k + 1}/{steps}, J mean {np.mean(jj):.4g}, max {np.max(jj):.4g}",
-                  file=sys.stderr, flush=True)
+            _progress.bar(fn, k + 1, steps, f"J mean {np.mean(jj):.4g}, max {np.max(jj):.4g}")
     if steps > 1:  # the first step's time, at the others' rate (an average over both kinds)
         t_steps *= steps / (steps - 1)
     terms = _terms_at(parameterisation, objective, drive, theta, y)

@@ -17,7 +17,6 @@ evaluation per step.
 
 from __future__ import annotations
 
-import sys
 import time
 
 import equinox as eqx
@@ -26,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Float
 
-from .. import _checks
+from .. import _checks, _progress
 from .._control._controllers import AbstractController
 from .._drive._model import BallScrewDrive
 from ._local import LocalTuning, _check_common, _settled, _start, _terms_at
@@ -188,8 +187,8 @@ def tune_simplex(
         done += k
         if progress:
             b = np.asarray(state.best_f)
-            print(f"{fn}: evaluation {done}/{evaluations}, best J mean {np.mean(b):.4g}, "
-                  f"max {np.max(b):.4g}", file=sys.stderr, flush=True)
+            _progress.bar(fn, done, evaluations,
+                          f"best J mean {np.mean(b):.4g}, max {np.max(b):.4g}", "evaluation")
     best = state.best_x
     terms = _terms_at(parameterisation, objective, drive, best, y)
     return LocalTuning(y, best, best, jnp.asarray(np.concatenate(history)), terms, t_steps)

@@ -29,7 +29,6 @@ r"""The whole gradient synthesis of paper Sec. 4.2 and Fig. 18 on one drive, as 
 from __future__ import annotations
 
 import math
-import sys
 import time
 from dataclasses import dataclass, field
 
@@ -40,7 +39,7 @@ import numpy as np
 import optax
 from jaxtyping import ArrayLike, Float
 
-from .. import _checks
+from .. import _checks, _progress
 from .._checks import instance
 from .._control._controllers import AbstractController
 from .._control._reference import (
@@ -199,7 +198,7 @@ def _join(a: LocalTuning, b: LocalTuning) -> LocalTuning:
 
 def _say(progress, text):
     if progress:
-        print(text, file=sys.stderr, flush=True)
+        _progress.say(text)
 
 
 def _count(name, value, least):
