@@ -245,7 +245,8 @@ def loop_summary(pos, f, H) -> dict:
     return {
         "positions_m": np.asarray(pos).tolist(),
         "servo": {"period_s": servo.period, "delay_samples": servo.delay_samples,
-                  "tau_s": servo.tau, "k_motor": float(servo.k_motor)},
+                  "tau_s": servo.tau, "k_motor": float(servo.k_motor),
+                  "current_limit_a": float(servo.current_limit)},
         "sampled": {**loops(sampled, f"SampledData(): the loop as the servo runs it ({rate}), "
                             "on the twin at each position", f_s),
                     "stable": [bool(v) for v in np.asarray(stable)]},
@@ -731,7 +732,8 @@ def _parser() -> argparse.ArgumentParser:
                         "fifth, the network training half, end to end a sixth) and "
                         "certificates every 10 mm instead of every 1 mm: a check of the whole "
                         "pipeline, with poorer designs; compiling the tuners takes most of "
-                        "the time, so it is not much faster (7.4 against 8.2 min on 2 cores)")
+                        "the time, so it takes about as long as the full run (7 min on 2 "
+                        "cores)")
     return parser
 
 

@@ -73,7 +73,7 @@ def test_demo_writes_figures(tmp_path):
     loop = s["double_loop"]
     assert len(loop["positions_m"]) == 13
     assert loop["servo"] == {"period_s": 1.25e-4, "delay_samples": 2, "tau_s": 2.5e-4,
-                             "k_motor": 1.2}
+                             "k_motor": 1.2, "current_limit_a": 40.0}
     for model in ("sampled", "continuous"):
         for name in ("speed", "position"):
             assert len(loop[model][name]["gain_margin"]) == 13, (model, name)

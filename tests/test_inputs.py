@@ -2,6 +2,7 @@
 and oracles for what they guard: the interpolated MCM, the RMS error of a run, the objective's
 total and the mode tracker's MAC tolerance."""
 
+import dataclasses
 import math
 import re
 
@@ -418,6 +419,16 @@ def test_objective_total_is_the_documented_sum_of_its_terms(drive, loops, run):
         assert bool(st.stable) == bool(terms.stable)
         # eigenvalues against the run's spectral radius: measured ≤ 9.3e-12 relative
         np.testing.assert_allclose(float(st.growth_rate), float(terms.growth_rate), rtol=3e-11)
+    # without current_limit_a the limit is the servo's rating: the same J, bit for bit
+    rated = dataclasses.replace(obj, current_limit_a=None, servo=fdjax.Servo(current_limit=13.0))
+    assert float(eqx.filter_jit(lambda c, y: rated(c, drive, y).total)(
+        loops["soft"], jnp.asarray(0.1))) == float(stable.total)
+    with pytest.raises(ValueError, match=r"`Servo\(current_limit=\.\.\.\)` must be finite and "
+                                         r"positive \(A\), got -5\.0"):
+        fdjax.Servo(current_limit=-5.0)
+    with pytest.raises(ValueError, match=r"`Objective\(current_limit_a=\.\.\.\)` must be finite "
+                                         r"and positive \(A\), or None"):
+        dataclasses.replace(obj, current_limit_a=0.0)
 
 
 def test_short_grids_objects_and_plants_are_named():

@@ -1,4 +1,5 @@
-r"""The servo's hardware: sampling, the control delay and the motor constant.
+r"""The servo's hardware: sampling, the control delay, the motor constant and the current
+rating.
 
 What a drive's hardware fixes is kept apart from what a designer tunes: a controller
 (:class:`fdjax.DoubleLoop`, :class:`fdjax.PIDLoop`, or a user's own) holds only gains and
@@ -27,6 +28,9 @@ the next period's start)."""
 REFERENCE_K_MOTOR = 1.2
 """k_i·k_T of the reference servo (N·m/A): a ~10 N·m servo motor and its amplifier."""
 
+REFERENCE_CURRENT_LIMIT_A = 40.0
+"""Peak current of the reference servo's amplifier (A): 48 N·m of peak torque at k_T·k_i 1.2."""
+
 
 class Servo(eqx.Module):
     r"""The servo drive's hardware (paper Fig. 7): servo period T, control delay τ = d·T, and
@@ -43,18 +47,23 @@ class Servo(eqx.Module):
         delay_samples: d ≥ 1, the delay in servo periods (static: it sets the sampled loop's
             size); default 2.
         k_motor: k_i·k_T (N·m/A); default 1.2.
+        current_limit: the amplifier's peak current (A, static), the rating the tuning
+            objective keeps the current command below (:class:`fdjax.Objective`); default 40.
     """
 
     period: float = eqx.field(static=True, default=REFERENCE_PERIOD_S)
     delay_samples: int = eqx.field(static=True, default=REFERENCE_DELAY_SAMPLES)
     k_motor: Float[Array, ""] = _checks.positive_field("Servo(k_motor=...)",
                                                        default=REFERENCE_K_MOTOR)
+    current_limit: float = eqx.field(static=True, default=REFERENCE_CURRENT_LIMIT_A)
 
     def __check_init__(self):
         p = self.period
         if isinstance(p, bool) or not isinstance(p, int | float) or not 0 < p < 1:
             raise ValueError(f"`Servo(period=...)` must be a number in (0, 1) s, got {p!r}")
         _checks.static_int(self.delay_samples, "Servo(delay_samples=...)", 1, 64)
+        _checks.static_number(self.current_limit, "Servo(current_limit=...)", lambda v: v > 0,
+                              "finite and positive (A)")
         if self.k_motor.ndim != 0:
             raise ValueError(
                 f"`Servo(k_motor=...)` must be a scalar, got shape {self.k_motor.shape}"

@@ -13,11 +13,12 @@ of the reference motion and the open loops on the unit circle:
 :meth:`Objective.simulated_term` the rest, from one run), with e_rms the RMS error at the scale
 (or the tool point), P_margin the smooth penalties of :func:`margin_penalty` on every break
 point of the loop (plant input, speed feedback, scale), g the growth rate of the sampled
-closed loop's least stable pole (s = ln z / T; negative when stable) and max|i| the peak
-current command.  An unstable candidate gets a large, finite value
-and a finite gradient: the simulation stops at its error bound and freezes its outputs, the
-growth-rate barrier grows quadratically; nothing is NaN.  Final designs are then checked with
-the exact margins and the eigenvalues (:func:`fdjax.loop_margins`, :func:`fdjax.check_stability`).
+closed loop's least stable pole (s = ln z / T; negative when stable), max|i| the peak
+current command and i_max the servo's current rating (``Servo.current_limit``).  An unstable
+candidate gets a large, finite value and a finite gradient: the simulation stops at its error
+bound and freezes its outputs, the growth-rate barrier grows quadratically; nothing is NaN.
+Final designs are then checked with the exact margins and the eigenvalues
+(:func:`fdjax.loop_margins`, :func:`fdjax.check_stability`).
 """
 
 from __future__ import annotations
@@ -95,7 +96,8 @@ class Objective(eqx.Module):
             penalty's slope meets that of the error, a few w above each requirement.
         margin_sharpness: the smooth minimum's β over the grid (error ≤ log(n)/β).
         max_growth_rate: g_max (1/s), static: the least stable pole must decay at least at −g_max.
-        current_limit_a: i_max (A), static.
+        current_limit_a: i_max (A), static; None (default): the servo's rating,
+            ``servo.current_limit``.
         duration: simulated time (s), static; default the reference's duration.
         error_bound_m: a run whose error passes this bound (m) stops; an unstable or diverged
             run's tracking term is this bound over e_ref.
@@ -119,7 +121,7 @@ class Objective(eqx.Module):
     stability_weight: Float[Array, ""] = eqx.field(converter=_scalar, default=10.0)
     max_growth_rate: float = eqx.field(static=True, default=-5.0)
     current_weight: Float[Array, ""] = eqx.field(converter=_scalar, default=1.0)
-    current_limit_a: float = eqx.field(static=True, default=40.0)
+    current_limit_a: float | None = eqx.field(static=True, default=None)
     duration: float | None = eqx.field(static=True, default=None)
     error_bound_m: float = eqx.field(static=True, default=0.01)
 
@@ -156,11 +158,15 @@ class Objective(eqx.Module):
         # the static settings: each fixes what is compiled, so each is checked here
         for name, ok, expected in MARGIN_REQUIREMENTS + (
             ("max_growth_rate", lambda v: True, "finite (1/s)"),
-            ("current_limit_a", lambda v: v > 0, "finite and positive (A)"),
             ("duration", lambda v: v > 0, "finite and positive (s)"),
             ("error_bound_m", lambda v: v > 0, "finite and positive (m)"),
         ):
             _checks.static_number(getattr(self, name), f"Objective({name}=...)", ok, expected)
+        if self.current_limit_a is not None:
+            _checks.static_number(self.current_limit_a, "Objective(current_limit_a=...)",
+                                  lambda v: v > 0, "finite and positive (A), or None (the "
+                                  "servo's rating)")
+        _checks.instance(self.servo, Servo, "Objective(servo=...)")
 
     def resolved(self, drive: BallScrewDrive, fn: str = "Objective") -> Objective:
         """This objective with its twin's number of kept modes counted for ``drive`` (when the
@@ -227,7 +233,7 @@ class Objective(eqx.Module):
         g_w = max(abs(self.max_growth_rate), 1.0)
         barrier = jax.nn.softplus((g - self.max_growth_rate) / g_w) ** 2
         i_peak = jnp.max(jnp.abs(sim.current))
-        i_max = self.current_limit_a
+        i_max = self.servo.current_limit if self.current_limit_a is None else self.current_limit_a
         ok = (g < 0) & (sim.result == RESULTS.successful)
         # a growing run's last current is no measure of the design: capped, without gradient
         i_used = jnp.where(ok, i_peak, jnp.minimum(jax.lax.stop_gradient(i_peak), 2 * i_max))
