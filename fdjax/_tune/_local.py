@@ -3,7 +3,7 @@ r"""Local tuning (paper Sec. 4.2): one design per table position, all positions 
 
 At each position Y_i the controller's vector θ_i (:class:`DoubleLoopParameterisation`) descends
 J(θ_i, Y_i) (:class:`Objective`) independently; the positions share one compiled program, the
-steps run in a ``lax.scan`` in chunks (a progress line between chunks).
+steps run in a ``lax.scan`` in chunks (a progress bar between chunks).
 """
 
 from __future__ import annotations
@@ -89,8 +89,8 @@ def tune_local(
             search (``optax.lbfgs()``) gets the value and the objective it needs.  The
             compiled steps are reused by a later call with the same optimiser object (and
             the same shapes): make it once, e.g. ``opt = optax.lbfgs()``.
-        chunk: steps per compiled call (the progress line is printed between calls).
-        progress: print the objective's mean and max after each chunk (to stderr).
+        chunk: steps per compiled call (the progress bar is drawn between calls).
+        progress: a progress bar with the objective's mean and max after each chunk (stderr).
     """
     fn = "tune_local"
     pos, objective = _check_common(fn, parameterisation, objective, drive, positions_m,
@@ -361,8 +361,8 @@ def descend(loss, params, optimiser, steps: int, *, chunk: int = 25, key=None,
     """Minimise ``loss(params) -> (value, aux)`` (or ``loss(params, key)`` when ``key`` is
     given: a fresh key per step) by ``steps`` steps of ``optimiser``; ``loss`` is an
     ``eqx.Module`` (its arrays are traced, one compilation for new values).  The steps run in
-    a ``lax.scan`` of ``chunk`` steps per compiled call; with ``progress`` (a name) a line per
-    chunk goes to stderr.  Keeps the parameters of the lowest value seen.  A step that
+    a ``lax.scan`` of ``chunk`` steps per compiled call; with ``progress`` (a name) a progress bar
+    after each chunk on stderr.  Keeps the parameters of the lowest value seen.  A step that
     would leave non-finite parameters or optimiser state is refused (the previous ones are
     kept), and a line search's trial at a non-finite point gets +∞ without evaluating
     ``loss``.  The compiled steps are reused by a later call with the same ``optimiser``

@@ -227,7 +227,7 @@ def tune_newton(
             tracking error and the barriers) from the changes of its gradient, ∇J − ∇J_m.
             Each step then runs the simulation once with its gradient (2 passes); with
             ``hessian_every`` = 1 only.
-        progress: print the objective's mean and max every 10 steps (to stderr).
+        progress: a progress bar with the objective's mean and max every 10 steps (stderr).
 
     Returns:
         A :class:`fdjax.LocalTuning`: ``theta`` and ``best_theta`` the accepted point (the

@@ -160,8 +160,8 @@ def tune_simplex(
         parameterisation, objective, drive, positions_m, start: as :func:`fdjax.tune_local`.
         evaluations: evaluations per position (> p + 1).
         step: the initial simplex's edge in θ (> 0).
-        chunk: evaluations per compiled call (the progress line is printed between calls).
-        progress: print the best J's mean and max after each chunk (to stderr).
+        chunk: evaluations per compiled call (the progress bar is drawn between calls).
+        progress: a progress bar with the best J's mean and max after each chunk (stderr).
     """
     fn = "tune_simplex"
     evaluations = _checks.static_int(evaluations, f"{fn}(evaluations=...)", 1)
