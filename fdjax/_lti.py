@@ -20,7 +20,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
-from jaxtyping import Array, ArrayLike, Complex, Float
+from jaxtyping import Array, ArrayLike, Complex, Float, Inexact
 
 __all__ = ["LTI"]
 
@@ -69,7 +69,7 @@ class LTI(eqx.Module):
         """Whether the system is discrete (it has a sample period ``dt``)."""
         return self.dt is not None
 
-    def transfer(self, x: Complex[ArrayLike, "*shape"]) -> Complex[Array, "*shape p m"]:
+    def transfer(self, x: Inexact[ArrayLike, "*shape"]) -> Complex[Array, "*shape p m"]:
         """C (xI − A)⁻¹ B + D at complex ``x`` of any shape (x = s, or z for a discrete system)."""
         return transfer(self.A, self.B, self.C, self.D, x)
 

@@ -426,6 +426,11 @@ def test_objective_total_is_the_documented_sum_of_its_terms(drive, loops, run):
     with pytest.raises(ValueError, match=r"`Servo\(current_limit=\.\.\.\)` must be finite and "
                                          r"positive \(A\), got -5\.0"):
         fdjax.Servo(current_limit=-5.0)
+    with pytest.raises(ValueError, match=r"`Servo\(current_limit=\.\.\.\)` must be finite"):
+        fdjax.Servo(current_limit="40")
+    assert type(fdjax.Servo(current_limit=np.float32(30.0)).current_limit) is float
+    with pytest.raises(TypeError, match=r"`Objective\(servo=\.\.\.\)`"):
+        dataclasses.replace(obj, servo="8 kHz")
     with pytest.raises(ValueError, match=r"`Objective\(current_limit_a=\.\.\.\)` must be finite "
                                          r"and positive \(A\), or None"):
         dataclasses.replace(obj, current_limit_a=0.0)

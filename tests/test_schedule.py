@@ -492,6 +492,10 @@ def test_scheduled_loop_runs_the_continuous_simulation_and_the_moving_table():
         assert a.result == fdjax.RESULTS.successful
         # the same arithmetic on the same values: measured bit-identical
         assert rel(a.error_scale, b.error_scale) < 1e-14
+    # frozen at y0, the schedule's own network is its controller at y0 (the same programs)
+    a = fdjax.simulate(sched, drive, fast, fdjax.PadeODE(), **kw)
+    b = fdjax.simulate(sched.controller(y0), drive, fast, fdjax.PadeODE(), **kw)
+    assert rel(a.error_scale, b.error_scale) < 1e-14
     c = fdjax.simulate(sched, drive, fast, moving=True, **kw)
     d = fdjax.simulate(sched.controller(y0), drive, fast, moving=True, **kw)
     assert float(c.position_m[-1]) > y0 + 5e-4  # it moved

@@ -19,7 +19,13 @@ from .._drive._model import BallScrewDrive
 from .._drive._reference import reference_drive
 from .._filters import MCM, NotchFilter, PeakFilter
 from ._controllers import DoubleLoop, PIDLoop
-from ._servo import REFERENCE_DELAY_SAMPLES, REFERENCE_K_MOTOR, REFERENCE_PERIOD_S, Servo
+from ._servo import (
+    REFERENCE_CURRENT_LIMIT_A,
+    REFERENCE_DELAY_SAMPLES,
+    REFERENCE_K_MOTOR,
+    REFERENCE_PERIOD_S,
+    Servo,
+)
 
 __all__ = [
     "reference_controller",
@@ -34,10 +40,10 @@ _TWO_PI = 2.0 * math.pi
 
 def reference_servo() -> Servo:
     r"""The reference servo of the simulations of paper Figs. 14, 16–17: T = 125 µs (8 kHz),
-    d = 2 periods of delay (τ = d·T = 250 µs), k_m = k_i·k_T = 1.2 N·m/A.  The same hardware
-    as ``Servo()``."""
+    d = 2 periods of delay (τ = d·T = 250 µs), k_m = k_i·k_T = 1.2 N·m/A, a 40 A peak current
+    rating.  The same hardware as ``Servo()``."""
     return Servo(period=REFERENCE_PERIOD_S, delay_samples=REFERENCE_DELAY_SAMPLES,
-                 k_motor=REFERENCE_K_MOTOR)
+                 k_motor=REFERENCE_K_MOTOR, current_limit=REFERENCE_CURRENT_LIMIT_A)
 
 
 def reference_mcm() -> MCM:

@@ -11,6 +11,7 @@ motor speed to linear units is the drive's, read from the plant.
 from __future__ import annotations
 
 import equinox as eqx
+import numpy as np
 from jaxtyping import Array, Float
 
 from .. import _checks
@@ -32,9 +33,21 @@ REFERENCE_CURRENT_LIMIT_A = 40.0
 """Peak current of the reference servo's amplifier (A): 48 N·m of peak torque at k_T·k_i 1.2."""
 
 
+def _static_float(v):
+    """A real scalar as a Python float (a static field); anything else as given, for the
+    check's named error."""
+    if isinstance(v, bool | str):
+        return v
+    try:
+        return float(v) if np.ndim(v) == 0 else v
+    except (TypeError, ValueError):
+        return v
+
+
 class Servo(eqx.Module):
-    r"""The servo drive's hardware (paper Fig. 7): servo period T, control delay τ = d·T, and
-    the motor gain k_m = k_i·k_T from current command to torque.
+    r"""The servo drive's hardware (paper Fig. 7): servo period T, control delay τ = d·T, the
+    motor gain k_m = k_i·k_T from current command to torque, and the amplifier's current
+    rating.
 
         T1(t) = k_m u(t − τ),      τ = d T,
 
@@ -55,7 +68,8 @@ class Servo(eqx.Module):
     delay_samples: int = eqx.field(static=True, default=REFERENCE_DELAY_SAMPLES)
     k_motor: Float[Array, ""] = _checks.positive_field("Servo(k_motor=...)",
                                                        default=REFERENCE_K_MOTOR)
-    current_limit: float = eqx.field(static=True, default=REFERENCE_CURRENT_LIMIT_A)
+    current_limit: float = eqx.field(static=True, default=REFERENCE_CURRENT_LIMIT_A,
+                                     converter=_static_float)
 
     def __check_init__(self):
         p = self.period

@@ -42,7 +42,7 @@ import math
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Complex, Float
+from jaxtyping import Array, ArrayLike, Complex, Float, Inexact
 
 from .._checks import (
     check,
@@ -113,7 +113,7 @@ class AbstractFilter(eqx.Module):
         (pn, _, _), (sn, _, _) = self._banks()
         return pn.shape[-2] + sn.shape[-2]
 
-    def transfer(self, s: Complex[ArrayLike, "*shape"]) -> Complex[Array, "*shape"]:
+    def transfer(self, s: Inexact[ArrayLike, "*shape"]) -> Complex[Array, "*shape"]:
         """G(s) at complex ``s`` of any shape (real input is promoted to complex128)."""
         s = to_complex(s)
         (pn, pd, _), (sn, sd, _) = self._banks()

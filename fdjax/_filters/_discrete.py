@@ -31,7 +31,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Complex, Float
+from jaxtyping import Array, ArrayLike, Complex, Float, Inexact
 
 from .._checks import (
     finite,
@@ -334,8 +334,8 @@ class DiscreteFilter(eqx.Module):
     series_sos: Float[Array, "q k 6"]
     dt: Float[Array, ""]
 
-    def __init__(self, parallel_sos: Float[ArrayLike, "p 6"], series_sos: Float[ArrayLike, "q 6"],
-                 dt: Float[ArrayLike, ""]):
+    def __init__(self, parallel_sos: Float[ArrayLike, "p 6"],
+                 series_sos: Float[ArrayLike, "q *k 6"], dt: Float[ArrayLike, ""]):
         par = _sos_array(parallel_sos, "DiscreteFilter(parallel_sos=...)")
         ser = _sos_array(series_sos, "DiscreteFilter(series_sos=...)", stages=True)
         self.dt = positive(real_scalar(dt, "DiscreteFilter(dt=...)"), "DiscreteFilter(dt=...)")
@@ -354,7 +354,7 @@ class DiscreteFilter(eqx.Module):
         q, k, _ = self.series_sos.shape
         return self.parallel_sos.shape[-2] + q * k
 
-    def transfer(self, z: Complex[ArrayLike, "*shape"]) -> Complex[Array, "*shape"]:
+    def transfer(self, z: Inexact[ArrayLike, "*shape"]) -> Complex[Array, "*shape"]:
         """G(z) at complex ``z`` of any shape."""
         zi = 1 / to_complex(z)
         parallel = 1 + jnp.sum(_section_response(self.parallel_sos, zi[..., None]), axis=-1)

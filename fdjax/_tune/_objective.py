@@ -131,6 +131,7 @@ class Objective(eqx.Module):
             self.duration = float(self.reference.duration)
 
     def __check_init__(self):
+        _checks.instance(self.servo, Servo, "Objective(servo=...)")
         if self.output not in ("scale", "tool"):
             raise ValueError(f"`Objective(output=...)` must be 'scale' or 'tool', got "
                              f"{self.output!r}")
@@ -166,7 +167,6 @@ class Objective(eqx.Module):
             _checks.static_number(self.current_limit_a, "Objective(current_limit_a=...)",
                                   lambda v: v > 0, "finite and positive (A), or None (the "
                                   "servo's rating)")
-        _checks.instance(self.servo, Servo, "Objective(servo=...)")
 
     def resolved(self, drive: BallScrewDrive, fn: str = "Objective") -> Objective:
         """This objective with its twin's number of kept modes counted for ``drive`` (when the
