@@ -464,7 +464,10 @@ def control_report(out: str, controllers: dict, *, certify_step_mm: float | None
                          "phase_margin_deg": _finite_or_none(r["phase_margin_deg"]),
                          "modulus_margin": _finite_or_none(r["modulus_margin"]),
                          "modulus_margin_required": float(r["certificate"].requirements[2])}
-        _write_csv(os.path.join(out, f"fig18_{name}.csv"), r["certificate"].rows())
+        rows = r["certificate"].rows()
+        _write_csv(os.path.join(out, f"fig18_{name}.csv"),
+                   {"position_mm": rows.pop("position_mm"),
+                    "rms_error_um": control[name]["rms_error_um"], **rows})
     certs = {}
     for name in ("mcm_robust", "mcm_interp", "mcm_ata", "mcm_ata_e2e"):
         if certify_step_mm is None:

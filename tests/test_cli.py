@@ -2,6 +2,7 @@
 (:mod:`fdjax._control._reference`)."""
 
 import ast
+import csv
 import importlib.metadata
 import json
 import os
@@ -103,6 +104,14 @@ def test_demo_writes_figures(tmp_path):
         for key in ("rms_error_um", "stable", "gain_margin_db", "phase_margin_deg",
                     "modulus_margin"):
             assert len(c[name][key]) == 61, (name, key)
+        # its table per controller: the same numbers, as written (17 significant digits)
+        with open(out / f"fig18_{name}.csv") as fh:
+            rows = list(csv.DictReader(fh))
+        assert list(rows[0])[:3] == ["position_mm", "rms_error_um", "stable"], name
+        np.testing.assert_allclose([float(r["rms_error_um"]) for r in rows],
+                                   c[name]["rms_error_um"], rtol=1e-15)
+        np.testing.assert_allclose([float(r["modulus_margin"]) for r in rows],
+                                   c[name]["modulus_margin"], rtol=1e-15)
     assert "fig18_rms_over_travel.png" in s["figures"]
     # the shipped designs (README's Fig. 18): the schedules, the robust MCM and the robust PID
     # keep the required margins at every 10 mm (measured least: GM 6.51 dB, PM 32.1°, modulus
