@@ -35,7 +35,7 @@ derivative-free tuner to reach its result, six local tunings within 60 s after c
    from a network fitted to the start's MCM: compile time, time per step, simulations.
 
 Usage:  python benchmarks/tuning.py [--steps 300] [--lbfgs-steps 100] [--newton-steps 60]
-        [--sr1-steps 100] [--maxfev 1500]
+        [--sr1-steps 150] [--maxfev 1500]
         [--e2e-steps 100] [--quick] [--out benchmarks/results/tuning.json]
 """
 
@@ -68,6 +68,8 @@ LEARNING_RATE = 0.02
 SIMPLEX_STEP = 0.1
 SIMS_PER_GRADIENT_STEP = 2  # one forward and one reverse pass per position
 HESSIAN_EVERY = 8  # the quasi-Newton variant: the exact Hessian every 8 steps, SR1 between
+NEWTON_CHUNK = 10  # tune_newton's default: steps per compiled call, rounded up to whole cycles
+SIMPLEX_CHUNK = 500  # tune_simplex: evaluations per compiled call (a divisor of --maxfev)
 TARGETS = {"simulations_ratio": 20.0, "wall_time_ratio": 10.0, "six_tunings_s": 60.0}
 
 
@@ -119,6 +121,21 @@ def _outcome(r, per_step):
 
 
 # ----------------------------------------------------------------------------- gradient
+def final_terms_seconds(par, obj, drive, r):
+    """The time of a tuner's last act, the terms of J at its best designs (one compiled
+    evaluation at every position, as the tuners run it): taken off a timed call, so that what
+    is left is its steps.  Compiled before it is timed (median of three)."""
+    key = (id(par), id(obj), id(drive))
+    if key not in _TERMS:
+        _TERMS[key] = eqx.filter_jit(jax.vmap(
+            lambda th, p: obj(par.to_controller(th), drive, p).total))
+    fn = _TERMS[key]
+    return median_time(lambda: fn(r.best_theta, r.positions_m), 3)[0]
+
+
+_TERMS = {}
+
+
 def gradient_local(par, obj, drive, positions, start, steps, method="adam"):
     """tune_local with compile time, time per step, the history of J and the evaluations of
     J with its gradient per step (1 for Adam, the line search's trials for L-BFGS)."""
@@ -138,9 +155,7 @@ def gradient_local(par, obj, drive, positions, start, steps, method="adam"):
     jax.block_until_ready((r.history, r.terms.total))
     wall_s = time.perf_counter() - t0  # every step compiled, plus the final terms
     # the final terms: one vmapped evaluation of J at the best θ (compiled in the warm-up)
-    terms_s, _ = median_time(lambda: jax.vmap(
-        lambda th, p: obj(par.to_controller(th), drive, p).total)(r.best_theta, r.positions_m),
-        3, warmup=False)
+    terms_s = final_terms_seconds(par, obj, drive, r)
     steps_s = max(wall_s - terms_s, 0.0)
     # the average: a line search's steps are not all alike (more trials late on), so the time
     # per step is the main call's, not a chunk's
@@ -167,8 +182,11 @@ def newton_local(par, obj, drive, positions, start, steps, every=1, radius=0.3,
     step (history row 0)."""
     trust = dict(radius=radius, max_radius=max_radius, shrink=shrink, hessian=hessian)
     t0 = time.perf_counter()
-    warm = fdjax.tune_newton(par, obj, drive, positions, start, steps=2,
-                             hessian_every=min(every, 2), **trust)
+    # the warm-up compiles the programs the main call runs: the loop of whole cycles of
+    # `every` steps (any number of them) and, with every > 1, the loop of the steps after them
+    warm_steps = every + 1 if every > 1 else 2
+    warm = fdjax.tune_newton(par, obj, drive, positions, start, steps=warm_steps,
+                             hessian_every=every, **trust)
     jax.block_until_ready(warm.history)
     warm_s = time.perf_counter() - t0
     t0 = time.perf_counter()
@@ -176,9 +194,7 @@ def newton_local(par, obj, drive, positions, start, steps, every=1, radius=0.3,
                           **trust)
     jax.block_until_ready((r.history, r.terms.total))
     wall_s = time.perf_counter() - t0
-    terms_s, _ = median_time(lambda: jax.vmap(
-        lambda th, p: obj(par.to_controller(th), drive, p).total)(r.best_theta, r.positions_m),
-        3, warmup=False)
+    terms_s = final_terms_seconds(par, obj, drive, r)
     steps_s = max(wall_s - terms_s, 0.0)
     per_step = steps_s / (steps + 1)
     h = np.asarray(r.history)
@@ -188,7 +204,7 @@ def newton_local(par, obj, drive, positions, start, steps, every=1, radius=0.3,
     with_h = np.array([k % every == 0 and hessian == "full" for k in range(steps + 1)])
     sims = np.where(with_h, 2 + 2 * n_par, 2)[:, None] * np.ones((1, h.shape[1]), int)
     return {
-        "steps": int(steps), "chunk": 1, "tuner": "tune_newton",
+        "steps": int(steps), "chunk": -(-NEWTON_CHUNK // every) * every, "tuner": "tune_newton",
         "optimiser": "trust-region Newton, exact Hessian"
                      + (" of the margin term every step, SR1 for the rest of J"
                         if hessian == "margins" else
@@ -197,7 +213,8 @@ def newton_local(par, obj, drive, positions, start, steps, every=1, radius=0.3,
         "trust_region": trust,
         "hessian_every": int(every), "sims_rows": sims,
         "evaluations": np.ones_like(h, dtype=int),
-        "compile_s": max(warm_s - 3 * per_step - terms_s, 0.0), "warmup_call_s": warm_s,
+        "compile_s": max(warm_s - (warm_steps + 1) * per_step - terms_s, 0.0),
+        "warmup_call_s": warm_s,
         "main_call_wall_s": wall_s, "steps_s": steps_s, "final_terms_s": terms_s,
         **_outcome(r, per_step),
     }
@@ -257,6 +274,73 @@ def derivative_free(par, obj, drive, positions, start, maxfev):
         })
     return {"compile_s": compile_s, "seconds_per_eval_median": t_eval,
             "simplex_step": SIMPLEX_STEP, "maxfev": int(maxfev), "positions": out}
+
+
+def compiled_simplex(par, obj, drive, positions, start, maxfev, scipy_nm):
+    """The same adaptive simplex compiled: ``fdjax.tune_simplex`` (scipy's coefficients and
+    initial simplex, all positions in one vmapped ``lax.scan``) with ``maxfev`` evaluations per
+    position.  A warm-up call compiles the chunk; the main call is timed whole, its final
+    terms apart.  Its trace is compared with scipy's (the same algorithm: the same points)."""
+    chunk = math.gcd(int(maxfev), SIMPLEX_CHUNK)
+    t0 = time.perf_counter()
+    warm = fdjax.tune_simplex(par, obj, drive, positions, start, evaluations=chunk,
+                              step=SIMPLEX_STEP, chunk=chunk)
+    jax.block_until_ready(warm.history)
+    warm_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    r = fdjax.tune_simplex(par, obj, drive, positions, start, evaluations=maxfev,
+                           step=SIMPLEX_STEP, chunk=chunk)
+    jax.block_until_ready((r.history, r.terms.total))
+    wall_s = time.perf_counter() - t0
+    terms_s = final_terms_seconds(par, obj, drive, r)
+    per_eval = max(wall_s - terms_s, 0.0) / maxfev  # one evaluation at every position
+    h = np.asarray(r.history)
+    rows = []
+    for i, (p, d) in enumerate(zip(positions, scipy_nm["positions"])):
+        k = int(np.argmin(h[:, i]))
+        sc = np.asarray(d["trace"])
+        n = min(sc.size, h.shape[0])
+        rows.append({"position_m": float(p), "j_best": float(h[k, i]), "evals_to_best": k + 1,
+                     "scipy_j_best": d["j_best"], "scipy_evals_to_best": d["evals_to_best"],
+                     "trace_max_rel_diff_from_scipy": float(np.max(
+                         np.abs(h[:n, i] - sc[:n]) / np.abs(sc[:n])))})
+    k_all = max(r_["evals_to_best"] for r_ in rows)
+    return {"tuner": "fdjax.tune_simplex", "evaluations": int(maxfev), "chunk": chunk,
+            "warmup_call_s": warm_s, "main_call_wall_s": wall_s, "final_terms_s": terms_s,
+            "seconds_per_evaluation_all_positions": per_eval,
+            "evals_to_best_all": k_all, "seconds_to_best_all": k_all * per_eval,
+            "history": h, "positions": rows}
+
+
+def against_compiled(grad, cs, totals):
+    """A gradient tuner against the compiled simplex: the steps to reach its best at each
+    position, the simulations (its evaluations to its best, summed, over the tuner's) and the
+    wall time (its evaluations to its best at the slowest position × its time per evaluation,
+    over the tuner's steps to reach every position × the time per step; for a Newton tuner
+    that reaches every position at the step measured against scipy's simplex, that measured
+    time)."""
+    run_min = np.minimum.accumulate(grad["history"], axis=0)
+    sims = _sims(grad)
+    steps, grad_sims = [], 0
+    for i, d in enumerate(cs["positions"]):
+        hit = np.nonzero(run_min[:, i] <= d["j_best"])[0]
+        k = int(hit[0]) + 1 if hit.size else None
+        steps.append(k)
+        grad_sims += 0 if k is None else int(sims[k - 1, i])
+    out = {"steps_to_reach": steps, "all_positions_reached": None not in steps}
+    if out["all_positions_reached"]:
+        k_max = max(steps)
+        seconds = k_max * grad["seconds_per_step"]
+        measured = (totals.get("gradient_steps_to_reach_all") == k_max
+                    and "gradient_seconds_to_reach_all_averaged" in totals)
+        if measured:
+            seconds = totals["gradient_seconds_to_reach_all"]
+        out.update(gradient_sims=grad_sims, gradient_seconds=seconds,
+                   gradient_seconds_measured=measured,
+                   simulations_ratio=sum(d["evals_to_best"] for d in cs["positions"])
+                   / grad_sims,
+                   wall_time_ratio=cs["seconds_to_best_all"] / seconds)
+    return out
 
 
 # ----------------------------------------------------------------------------- checks
@@ -396,6 +480,7 @@ def markdown(result):
     ]
     for method, m in result["methods"].items():
         lines += _method_markdown(method, m, n_pos)
+    lines += _compiled_markdown(result, n_pos)
     e = result["end_to_end"]
     lines += ["", "## End to end", "", f"`train_schedule`, network and common gains, batch of "
               f"{e['batch']} positions drawn over the travel, {e['optimiser']}: compile "
@@ -406,6 +491,48 @@ def markdown(result):
     return "\n".join(lines) + "\n"
 
 
+def _compiled_markdown(result, n_pos):
+    nm, cs = result["derivative_free"], result["compiled_simplex"]
+    rows = cs["positions"]
+    diff = max(r["trace_max_rel_diff_from_scipy"] for r in rows)
+    lines = [
+        "", "## The same simplex, compiled (`fdjax.tune_simplex`)", "",
+        "scipy's Nelder-Mead calls the jitted J once per evaluation, and every call "
+        "recomputes what does not depend on θ (the twin at the position, its zero-order hold "
+        "and its response on the frequency grid, the reference's samples).  "
+        "`fdjax.tune_simplex` runs the same adaptive simplex (the same coefficients and "
+        f"initial simplex) for all {n_pos} positions in one vmapped `lax.scan`, "
+        f"{cs['chunk']} evaluations per compiled call, which computes that part once: "
+        f"{cs['evaluations']} evaluations per position in "
+        f"{cs['main_call_wall_s'] - cs['final_terms_s']:.1f} s after compilation "
+        f"({cs['seconds_per_evaluation_all_positions'] * 1e3:.2f} ms per evaluation of all "
+        f"{n_pos} positions, against {nm['seconds_per_eval_median'] * 1e3:.1f} ms for one "
+        f"position by scipy).  Its values follow scipy's to {diff:.1e} (largest relative "
+        "difference over the traces); its best J "
+        + ", ".join(f"{r['j_best']:.4g}" for r in rows) + " after "
+        + ", ".join(str(r["evals_to_best"]) for r in rows) + " evaluations (scipy: "
+        + ", ".join(str(r["scipy_evals_to_best"]) for r in rows) + "); every position at its "
+        f"best after {cs['evals_to_best_all']} evaluations, "
+        f"{cs['seconds_to_best_all']:.2f} s.",
+        "",
+        f"Each tuner against it (the wall time of both compiled, {n_pos} positions together):",
+        "",
+        "| tuner | steps to reach its best, per position | simulations ratio | gradient s "
+        "| wall-time ratio |",
+        "|---|---|---|---|---|",
+    ]
+    for method, m in result["methods"].items():
+        a = m["against_compiled_simplex"]
+        steps = ", ".join("—" if k is None else str(k) for k in a["steps_to_reach"])
+        if a["all_positions_reached"]:
+            how = " (measured)" if a["gradient_seconds_measured"] else ""
+            lines.append(f"| {METHODS[method]} | {steps} | {a['simulations_ratio']:.1f}× | "
+                         f"{a['gradient_seconds']:.2f}{how} | {a['wall_time_ratio']:.1f}× |")
+        else:
+            lines.append(f"| {METHODS[method]} | {steps} | not reached everywhere | — | — |")
+    return lines
+
+
 def _method_markdown(method, m, n_pos):
     g, t, rows = m["gradient"], m["totals"], m["per_position"]
     lines = [
@@ -413,8 +540,8 @@ def _method_markdown(method, m, n_pos):
         f"`{g['tuner']}`, {g['steps']} steps of {g['optimiser']}, all positions in one vmapped "
         f"program; compile {g['compile_s']:.1f} s, {g['seconds_per_step'] * 1e3:.0f} ms "
         f"per step ({g['steps_per_second']:.2f} steps/s, {n_pos} positions per step), "
-        f"{g['steps_s']:.1f} s for all steps after compilation (+ {g['final_terms_s']:.1f} s "
-        f"for {g['tuner']}'s final terms); "
+        f"{g['steps_s']:.1f} s for all steps after compilation "
+        f"(+ {g['final_terms_s'] * 1e3:.0f} ms for {g['tuner']}'s final terms); "
         f"{int(np.sum(g['evaluations']))} evaluations of J with its derivatives in all "
         f"({int(np.sum(g['sims_rows']))} simulation equivalents).",
         "",
@@ -483,7 +610,7 @@ def main():
     ap.add_argument("--steps", type=int, default=300, help="Adam steps")
     ap.add_argument("--lbfgs-steps", type=int, default=100, help="L-BFGS steps")
     ap.add_argument("--newton-steps", type=int, default=60, help="trust-region Newton steps")
-    ap.add_argument("--sr1-steps", type=int, default=100,
+    ap.add_argument("--sr1-steps", type=int, default=150,
                     help=f"trust-region Newton steps with the Hessian every {HESSIAN_EVERY}")
     ap.add_argument("--maxfev", type=int, default=1500)
     ap.add_argument("--e2e-steps", type=int, default=100,
@@ -512,6 +639,9 @@ def main():
     nm = derivative_free(par, obj, drive, positions, start, args.maxfev)
     print("nelder-mead", [(d["position_m"], d["j_best"], d["evals"], d["seconds"])
                           for d in nm["positions"]], flush=True)
+    compiled = compiled_simplex(par, obj, drive, positions, start, args.maxfev, nm)
+    print("compiled simplex", {k: v for k, v in compiled.items()
+                               if k not in ("history", "positions")}, flush=True)
     e2e = end_to_end(par, obj, drive, start, args.e2e_steps)
     print("end to end", e2e, flush=True)
     methods = {}
@@ -548,6 +678,7 @@ def main():
             common_totals["gradient_seconds_measured"] = True
         methods[method] = {
             "gradient": grad, "per_position": rows, "totals": totals,
+            "against_compiled_simplex": against_compiled(grad, compiled, totals),
             "common_value": common, "common_value_totals": common_totals,
             "verification": verify(par, drive, positions, grad["best_theta"]),
             "targets": {
@@ -586,6 +717,7 @@ def main():
                     "optax": optax.__version__, "device": str(jax.devices()[0])},
         "loadavg": {"start": load0, "end": loadavg()},
         "methods": methods, "derivative_free": nm, "nelder_mead_verification": nm_verification,
+        "compiled_simplex": compiled,
         "end_to_end": e2e,
     }
     write_results(args.out, jsonable(result), markdown(result))

@@ -108,6 +108,19 @@ def test_tune_newton_lowers_the_objective_with_the_exact_hessian():
     # the exact Hessian every other step, SR1 updates between: J falls as far in four steps
     sr1 = fdjax.tune_newton(par, obj, drive, pos, start, steps=4, hessian_every=2)
     assert np.all(np.asarray(sr1.terms.total) < 0.6 * np.asarray(sr1.history)[0])  # 0.57, 0.17
+    # the steps run in compiled loops whose counts are traced: five steps (two whole cycles
+    # in one call, then a gradient step in the loop of the steps after the cycles) repeat the
+    # run above's four (the same program) and go on; three steps then compile nothing
+    # (small shape-dependent array ops aside: the history of another length)
+    with compilations() as names:
+        longer = fdjax.tune_newton(par, obj, drive, pos, start, steps=5, hessian_every=2)
+    assert "jit(_run_gradient_steps)" in names and "jit(_run_cycles)" not in names, names
+    with compilations() as names:
+        fdjax.tune_newton(par, obj, drive, pos, start, steps=3, hessian_every=2)
+    assert not [n for n in names if "_run" in n or "_evaluate" in n], names
+    assert np.asarray(longer.history).shape == (6, 2)
+    np.testing.assert_allclose(np.asarray(longer.history)[:5], np.asarray(sr1.history),
+                               rtol=1e-13)
     # the Hessian against central differences of the gradient, without the growth-rate
     # barrier (its gradient is exact, its second derivative holds the dominant eigenspace
     # fixed: 1–6 % off at 0.3 m, measured); the weight is a leaf, nothing recompiles
