@@ -182,9 +182,11 @@ def newton_local(par, obj, drive, positions, start, steps, every=1, radius=0.3,
     step (history row 0)."""
     trust = dict(radius=radius, max_radius=max_radius, shrink=shrink, hessian=hessian)
     t0 = time.perf_counter()
-    # the warm-up compiles the programs the main call runs: the loop of whole cycles of
-    # `every` steps (any number of them) and, with every > 1, the loop of the steps after them
-    warm_steps = every + 1 if every > 1 else 2
+    # the warm-up compiles the programs the main call runs (their step counts are traced):
+    # a cycle of `every` steps (with every > 10 steps, tune_newton's chunk, gradient steps in
+    # calls of 10 and the exact step alone) and the gradient steps after it; with the exact
+    # Hessian once in a longer run than the main call's (at the start only), gradient steps
+    warm_steps = every + 1 if every <= steps else NEWTON_CHUNK + 1
     warm = fdjax.tune_newton(par, obj, drive, positions, start, steps=warm_steps,
                              hessian_every=every, **trust)
     jax.block_until_ready(warm.history)

@@ -29,7 +29,7 @@ The steps run in compiled loops (a few cycles of ``hessian_every`` steps per cal
 what does not depend on θ, the twins at the positions, their zero-order holds and responses on
 the frequency grid and the reference's samples, is computed once per call instead of at every
 evaluation (on the reference drive's 12-parameter problem a step with the exact Hessian then
-costs about 0.6×, one with the gradient alone about 0.45× of the same step called one by one).
+costs about half, one with the gradient alone about 0.45× of the same step called alone).
 """
 
 from __future__ import annotations
@@ -211,13 +211,13 @@ def _step(par, objective, drive, y, st: _Newton, kind: str, quasi: bool, shrink,
 
 @eqx.filter_jit
 def _run_cycles(par, objective, drive, y, st, cycles, shrink, max_radius, every: int,
-                split: bool, rows: int):
+                split: bool, quasi: bool, rows: int):
     """``cycles`` (traced: one program for any count up to rows/every) cycles of ``every`` − 1
     gradient steps and one step with the exact Hessian (or the margins' with ``split``), in
     one compiled loop: what does not depend on θ (the twins, their zero-order holds and
     responses on the grid, the reference) is computed once, not at every step.  Returns the
-    iterate and J at every trial, (rows, n) (the first cycles·every rows filled)."""
-    quasi = every > 1 and not split
+    iterate and J at every trial, (rows, n) (the first cycles·every rows filled); ``quasi``:
+    SR1 updates of the model's Hessian (with ``hessian_every`` > 1)."""
 
     def run(kind):
         def body(_, carry):
@@ -273,10 +273,11 @@ def tune_newton(
     Each step evaluates J, its gradient and its Hessian once per position (the Hessian's p
     columns are forward-mode derivatives of the reverse-mode gradient: 2p + 2 passes, p = 12
     for :class:`fdjax.DoubleLoopParameterisation`, which on the reference drive cost about
-    twenty evaluations of J, or twelve of J with its gradient, in wall time).  On the
-    12-parameter local problem it reaches lower objectives than first-order steps, and than
-    the adaptive simplex given 1500 evaluations per position, in less wall time
-    (``benchmarks/tuning.py``); it stops in the
+    eight steps with the gradient alone in wall time).  On the 12-parameter local problem it
+    reaches lower objectives than first-order steps, and than the adaptive simplex given 1500
+    evaluations per position; with ``hessian_every=8`` in less wall time than the simplex
+    compiled as this tuner is (:func:`fdjax.tune_simplex`, 1.4×), with the exact Hessian at
+    every step in more (``benchmarks/tuning.py``); it stops in the
     minimum its trust region leads to, and a simplex run for 8× longer ends lower at four of
     six positions (``benchmarks/tuning_converged.py``).  There, a larger initial ``radius``
     (1 or 3) took more exact steps or missed a position, ``hessian_every`` = 20 or "the start
@@ -346,23 +347,29 @@ def tune_newton(
     st = _settled(_Newton(theta, j, g, H, jnp.full(pos.size, float(radius)), B, g_m))
     trust = dict(shrink=jnp.asarray(float(shrink)), max_radius=jnp.asarray(float(max_radius)))
     every = hessian_every
-    cycles_per_call = -(-chunk // every)
-    rows = cycles_per_call * every
+    # whole cycles of `every` steps per call where they fit in a chunk; else calls of gradient
+    # steps and the exact step alone
+    cycles_per_call = -(-chunk // every) if every <= chunk else 0
     history = [np.asarray(j)[None]]
     calls, t_later, later_steps = 0, 0.0, 0
     done = 0
     while done < steps:
         t0 = time.perf_counter()
-        n_cycles = min(cycles_per_call, (steps - done) // every)
-        if n_cycles:
+        exact_at = done + (every - 1 - done % every)  # the next step with the exact Hessian
+        if cycles_per_call and done % every == 0 and steps - done >= every:
+            n_cycles = min(cycles_per_call, (steps - done) // every)
             st, hist = _run_cycles(parameterisation, objective, drive, y, st,
-                                   jnp.asarray(n_cycles), every=every, split=split, rows=rows,
-                                   **trust)
+                                   jnp.asarray(n_cycles), every=every, split=split,
+                                   quasi=every > 1, rows=cycles_per_call * every, **trust)
             n = n_cycles * every
-        else:  # fewer steps left than a cycle: gradient steps only
-            n = steps - done
+        elif done == exact_at:
+            st, hist = _run_cycles(parameterisation, objective, drive, y, st, jnp.asarray(1),
+                                   every=1, split=False, quasi=True, rows=1, **trust)
+            n = 1
+        else:
+            n = min(exact_at, steps, done + chunk) - done
             st, hist = _run_gradient_steps(parameterisation, objective, drive, y, st,
-                                           jnp.asarray(n), rows=every - 1, **trust)
+                                           jnp.asarray(n), rows=min(every - 1, chunk), **trust)
         history.append(np.asarray(hist)[:n])  # waits for the steps
         if calls > 0:  # the first call compiles
             t_later += time.perf_counter() - t0

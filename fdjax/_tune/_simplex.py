@@ -12,7 +12,11 @@ basins.  The coefficients are those of the adaptive method (Gao & Han 2012, scip
 Each scan step evaluates the objective once, at a point chosen by the step's phase (start,
 reflect, expand, contract outside, contract inside, shrink), so the loop has one call site of
 the simulation (one compilation) and runs under ``vmap``: every position advances one
-evaluation per step.
+evaluation per step.  The points are scipy's (``minimize(method="Nelder-Mead",
+adaptive=True)`` from the same initial simplex: the same values to ~1e-8 relative over 1500
+evaluations on the reference drive's local problem), and the compiled loop computes what does
+not depend on θ once per call: there 1500 evaluations at each of six positions took 2.5 s,
+scipy's 13.4 s (``benchmarks/tuning.py``).
 """
 
 from __future__ import annotations
