@@ -39,8 +39,8 @@ class LocalTuning(eqx.Module):
         terms: the objective's terms at ``best_theta`` (batched over the positions).
         seconds: wall time of the steps without the first call, which compiles (s): the
             steps after the first chunk (0.0 for a run of one chunk); :func:`fdjax.tune_newton`
-            the calls after the first, scaled to all steps at their rate (a run of one call:
-            its time).
+            the calls after the first of each of its programs, scaled to all steps at their
+            rate.
         evaluations: evaluations of the objective with its gradient per step and position,
             (steps, n): 1 per step for Adam, the line search's trials for L-BFGS (and the
             start's evaluation on the first step); None where not counted.

@@ -25,11 +25,14 @@ simulation) by their exact Hessian at every step, the rest, J − J_m (the simul
 error and the barriers), by an SR1 estimate B from zero, updated with s and Δ(∇J − ∇J_m):
 H ≈ ∇²J_m + B.  Each step then runs one simulation with its gradient per position.
 
-The steps run in compiled loops (a few cycles of ``hessian_every`` steps per call), so that
+The steps run in compiled loops (whole cycles of ``hessian_every`` steps per call where a cycle
+fits in a call's ``chunk`` of steps, else calls of gradient steps and the exact step alone), so
+that
 what does not depend on θ, the twins at the positions, their zero-order holds and responses on
 the frequency grid and the reference's samples, is computed once per call instead of at every
 evaluation (on the reference drive's 12-parameter problem a step with the exact Hessian then
-costs about half, one with the gradient alone about 0.45× of the same step called alone).
+costs about half, one with the gradient alone about 0.45× of the same step called alone;
+``benchmarks/tuning.py``).
 """
 
 from __future__ import annotations
@@ -140,7 +143,6 @@ def _values_split(par, objective, drive, y, theta):
 
 
 _evaluate = eqx.filter_jit(_values)
-_value_and_gradient = eqx.filter_jit(_values_and_gradients)
 _evaluate_split = eqx.filter_jit(_values_split)
 
 
@@ -154,9 +156,10 @@ def _sr1(H, s, y):
 
 
 def _accept(theta, j, g, H, delta, step, pred, j_t, g_t, H_t, shrink, max_radius, exact: bool,
-            quasi: bool):
+            quasi):
     """The trial's verdict and the new radius; the model's Hessian: the trial's exact one
-    where ``exact`` and the step is accepted, else the SR1 update where ``quasi``."""
+    where ``exact`` and the step is accepted, else the SR1 update where ``quasi`` (a boolean,
+    traced or not)."""
     ok = jnp.isfinite(j_t) & jnp.all(jnp.isfinite(g_t), axis=1) & jnp.all(
         jnp.isfinite(H_t), axis=(1, 2))
     rho = jnp.where(ok & (pred > 0), (j - j_t) / jnp.where(pred > 0, pred, 1.0), -1.0)
@@ -166,7 +169,7 @@ def _accept(theta, j, g, H, delta, step, pred, j_t, g_t, H_t, shrink, max_radius
                                 jnp.minimum(2.0 * delta, max_radius), delta))
     acc = rho > _ACCEPT
     pick = lambda a, b: jnp.where(acc.reshape(acc.shape + (1,) * (a.ndim - 1)), a, b)  # noqa: E731
-    H_q = jax.vmap(_sr1)(H, step, g_t - g) if quasi else H
+    H_q = jnp.where(quasi, jax.vmap(_sr1)(H, step, g_t - g), H)
     H_new = jnp.where(acc[:, None, None], H_t, H_q) if exact else H_q
     return (pick(theta + step, theta), pick(j_t, j), pick(g_t, g), H_new,
             jnp.maximum(delta, 1e-12), acc)
@@ -186,7 +189,7 @@ class _Newton(eqx.Module):
     g_m: Array
 
 
-def _step(par, objective, drive, y, st: _Newton, kind: str, quasi: bool, shrink, max_radius):
+def _step(par, objective, drive, y, st: _Newton, kind: str, quasi, shrink, max_radius):
     """One trust-region step at every position; ``kind``: "exact" (the trial's J, ∇J and
     ∇²J), "gradient" (J and ∇J; the Hessian by SR1 where ``quasi``) or "split" (the margin
     term's Hessian, SR1 for the rest).  Returns the new iterate and J at the trial."""
@@ -211,13 +214,14 @@ def _step(par, objective, drive, y, st: _Newton, kind: str, quasi: bool, shrink,
 
 @eqx.filter_jit
 def _run_cycles(par, objective, drive, y, st, cycles, shrink, max_radius, every: int,
-                split: bool, quasi: bool, rows: int):
+                split: bool, quasi, rows: int):
     """``cycles`` (traced: one program for any count up to rows/every) cycles of ``every`` − 1
     gradient steps and one step with the exact Hessian (or the margins' with ``split``), in
     one compiled loop: what does not depend on θ (the twins, their zero-order holds and
     responses on the grid, the reference) is computed once, not at every step.  Returns the
-    iterate and J at every trial, (rows, n) (the first cycles·every rows filled); ``quasi``:
-    SR1 updates of the model's Hessian (with ``hessian_every`` > 1)."""
+    iterate and J at every trial, (rows, n) (the first cycles·every rows filled); ``quasi``
+    (traced: the exact steps of any ``hessian_every`` share a program): SR1 updates of the
+    model's Hessian (with ``hessian_every`` > 1)."""
 
     def run(kind):
         def body(_, carry):
@@ -227,7 +231,8 @@ def _run_cycles(par, objective, drive, y, st, cycles, shrink, max_radius, every:
         return body
 
     def cycle(_, carry):
-        carry = jax.lax.fori_loop(0, every - 1, run("gradient"), carry)
+        if every > 1:
+            carry = jax.lax.fori_loop(0, every - 1, run("gradient"), carry)
         return run("split" if split else "exact")(0, carry)
 
     hist = jnp.zeros((rows,) + st.j.shape, st.j.dtype)
@@ -272,17 +277,19 @@ def tune_newton(
 
     Each step evaluates J, its gradient and its Hessian once per position (the Hessian's p
     columns are forward-mode derivatives of the reverse-mode gradient: 2p + 2 passes, p = 12
-    for :class:`fdjax.DoubleLoopParameterisation`, which on the reference drive cost about
-    eight steps with the gradient alone in wall time).  On the 12-parameter local problem it
-    reaches lower objectives than first-order steps, and than the adaptive simplex given 1500
-    evaluations per position; with ``hessian_every=8`` in less wall time than the simplex
-    compiled as this tuner is (:func:`fdjax.tune_simplex`, 1.4×), with the exact Hessian at
-    every step in more (``benchmarks/tuning.py``); it stops in the
-    minimum its trust region leads to, and a simplex run for 8× longer ends lower at four of
-    six positions (``benchmarks/tuning_converged.py``).  There, a larger initial ``radius``
-    (1 or 3) took more exact steps or missed a position, ``hessian_every`` = 20 or "the start
-    only" more steps than 8, and ``hessian="margins"`` 10× fewer simulations than the simplex
-    but no less time (``benchmarks/tuning_variants.py``).  For many parameters (a network) use
+    for :class:`fdjax.DoubleLoopParameterisation`; on the reference drive a step with it
+    costs about as much as eight with the gradient alone, 69 against 8.9 ms for six
+    positions).  On the 12-parameter local problem it reaches lower objectives than
+    first-order steps, and than the adaptive simplex given 1500 evaluations per position;
+    with ``hessian_every=8`` in less wall time than the simplex compiled as this tuner is
+    (:func:`fdjax.tune_simplex`, 1.4×), with the exact Hessian at every step in more
+    (``benchmarks/tuning.py``); it stops in the minimum its trust region leads to, and a
+    simplex run for 8× longer ends lower at four of six positions
+    (``benchmarks/tuning_converged.py``).  There, a larger initial ``radius``
+    (1 or 3) reached the simplex's best as well in about as many steps, ``hessian_every`` = 20
+    took more steps than 8 and "the start only" missed three positions, and
+    ``hessian="margins"`` 10× fewer simulations than the simplex but less time saved than the
+    exact Hessian (``benchmarks/tuning_variants.py``).  For many parameters (a network) use
     :func:`fdjax.train_schedule`.  The Hessian is exact for the tracking error and the margin
     penalties; the growth-rate barrier's second derivative holds the dominant eigenspace
     fixed (its gradient is exact), which the acceptance test ρ absorbs.
@@ -306,9 +313,11 @@ def tune_newton(
             Each step then runs the simulation once with its gradient (2 passes); with
             ``hessian_every`` = 1 only.
         chunk: steps per compiled call, rounded up to whole cycles of ``hessian_every``
-            steps (the progress bar is drawn between calls).  The steps of a call run in one
-            compiled loop, which computes what does not depend on θ (the twins, their
-            zero-order holds and responses on the frequency grid, the reference) once per call.
+            steps; with ``hessian_every`` > ``chunk``, calls of at most ``chunk`` gradient
+            steps and the step with the exact Hessian alone (the progress bar is drawn between
+            calls).  The steps of a call run in one compiled loop, which computes what does not
+            depend on θ (the twins, their zero-order holds and responses on the frequency grid,
+            the reference) once per call.
         progress: a progress bar with the objective's mean and max after each call (stderr).
 
     Returns:
@@ -316,8 +325,8 @@ def tune_newton(
         lowest J seen), ``history`` J at the start and at every step's trial point, (steps + 1,
         n), ``evaluations`` ones, (steps, n) (one evaluation with the gradient per step and
         position, and the Hessian on every ``hessian_every``-th), ``seconds`` the steps' wall
-        time, measured over the calls after the first (which compiles) and scaled to all steps
-        at their rate (a run of one call: that call's time).
+        time, measured over the calls after the first of each program (which may compile)
+        and scaled to all steps at their rate (0.0 when no call is such).
     """
     fn = "tune_newton"
     pos, objective = _check_common(fn, parameterisation, objective, drive, positions_m, steps,
@@ -351,7 +360,7 @@ def tune_newton(
     # steps and the exact step alone
     cycles_per_call = -(-chunk // every) if every <= chunk else 0
     history = [np.asarray(j)[None]]
-    calls, t_later, later_steps = 0, 0.0, 0
+    seen, t_later, later_steps = set(), 0.0, 0
     done = 0
     while done < steps:
         t0 = time.perf_counter()
@@ -360,28 +369,29 @@ def tune_newton(
             n_cycles = min(cycles_per_call, (steps - done) // every)
             st, hist = _run_cycles(parameterisation, objective, drive, y, st,
                                    jnp.asarray(n_cycles), every=every, split=split,
-                                   quasi=every > 1, rows=cycles_per_call * every, **trust)
-            n = n_cycles * every
-        elif done == exact_at:
+                                   quasi=jnp.asarray(every > 1),
+                                   rows=cycles_per_call * every, **trust)
+            n, program = n_cycles * every, "cycles"
+        elif done == exact_at:  # the program of hessian_every = 1 and this chunk
             st, hist = _run_cycles(parameterisation, objective, drive, y, st, jnp.asarray(1),
-                                   every=1, split=False, quasi=True, rows=1, **trust)
-            n = 1
+                                   every=1, split=False, quasi=jnp.asarray(True), rows=chunk,
+                                   **trust)
+            n, program = 1, "exact"
         else:
             n = min(exact_at, steps, done + chunk) - done
             st, hist = _run_gradient_steps(parameterisation, objective, drive, y, st,
                                            jnp.asarray(n), rows=min(every - 1, chunk), **trust)
+            program = "gradient"
         history.append(np.asarray(hist)[:n])  # waits for the steps
-        if calls > 0:  # the first call compiles
+        if program in seen:  # the first call of each program may compile it
             t_later += time.perf_counter() - t0
             later_steps += n
-        else:
-            t_first = time.perf_counter() - t0
-        calls += 1
+        seen.add(program)
         done += n
         if progress:
             jj = np.asarray(st.j)
             _progress.bar(fn, done, steps, f"J mean {np.mean(jj):.4g}, max {np.max(jj):.4g}")
-    t_steps = t_later * steps / later_steps if later_steps else t_first
+    t_steps = t_later * steps / later_steps if later_steps else 0.0
     theta = st.theta
     terms = _terms_at(parameterisation, objective, drive, theta, y)
     return LocalTuning(y, theta, theta, jnp.asarray(np.concatenate(history)), terms, t_steps,
