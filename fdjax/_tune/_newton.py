@@ -278,11 +278,11 @@ def tune_newton(
     Each step evaluates J, its gradient and its Hessian once per position (the Hessian's p
     columns are forward-mode derivatives of the reverse-mode gradient: 2p + 2 passes, p = 12
     for :class:`fdjax.DoubleLoopParameterisation`; on the reference drive a step with it
-    costs about as much as eight with the gradient alone, 69 against 8.9 ms for six
+    costs as much as five to eight with the gradient alone, 69–78 against 8–15 ms for six
     positions).  On the 12-parameter local problem it reaches lower objectives than
     first-order steps, and than the adaptive simplex given 1500 evaluations per position;
     with ``hessian_every=8`` in less wall time than the simplex compiled as this tuner is
-    (:func:`fdjax.tune_simplex`, 1.4×), with the exact Hessian at every step in more
+    (:func:`fdjax.tune_simplex`, 1.1–1.4× in two runs), with the exact Hessian at every step in more
     (``benchmarks/tuning.py``); it stops in the minimum its trust region leads to, and a
     simplex run for 8× longer ends lower at four of six positions
     (``benchmarks/tuning_converged.py``).  There, a larger initial ``radius``

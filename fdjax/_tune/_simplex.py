@@ -15,8 +15,8 @@ the simulation (one compilation) and runs under ``vmap``: every position advance
 evaluation per step.  The points are scipy's (``minimize(method="Nelder-Mead",
 adaptive=True)`` from the same initial simplex: the same values to ~1e-8 relative over 1500
 evaluations on the reference drive's local problem), and the compiled loop computes what does
-not depend on θ once per call: there 1500 evaluations at each of six positions took 2.5 s,
-scipy's 13.4 s (``benchmarks/tuning.py``).
+not depend on θ once per call: there 1500 evaluations at each of six positions took
+2.5–2.6 s, scipy's 13.4–15.9 s (``benchmarks/tuning.py``, two runs).
 """
 
 from __future__ import annotations
