@@ -243,7 +243,8 @@ def _run_cycles(par, objective, drive, y, st, cycles, shrink, max_radius, every:
 @eqx.filter_jit
 def _run_gradient_steps(par, objective, drive, y, st, steps, shrink, max_radius, rows: int):
     """``steps`` (traced, at most ``rows``) gradient steps with SR1 updates, one compiled
-    loop: the steps after the last whole cycle of :func:`_run_cycles`."""
+    loop: the steps after the last whole cycle of :func:`_run_cycles`, or, with
+    ``hessian_every`` above the chunk, the steps between the exact ones."""
     def body(_, carry):
         st, hist, k = carry
         st, j_t = _step(par, objective, drive, y, st, "gradient", True, shrink, max_radius)
