@@ -27,8 +27,7 @@ H ≈ ∇²J_m + B.  Each step then runs one simulation with its gradient per po
 
 The steps run in compiled loops (whole cycles of ``hessian_every`` steps per call where a cycle
 fits in a call's ``chunk`` of steps, else calls of gradient steps and the exact step alone), so
-that
-what does not depend on θ, the twins at the positions, their zero-order holds and responses on
+that what does not depend on θ, the twins at the positions, their zero-order holds and responses on
 the frequency grid and the reference's samples, is computed once per call instead of at every
 evaluation (on the reference drive's 12-parameter problem a step with the exact Hessian then
 costs about half, one with the gradient alone about 0.45× of the same step called alone;
@@ -212,6 +211,16 @@ def _step(par, objective, drive, y, st: _Newton, kind: str, quasi, shrink, max_r
     return _Newton(theta, j, g, H, delta, B, g_m), j_t
 
 
+def _loop_step(par, objective, drive, y, kind, quasi, shrink, max_radius):
+    """A ``fori_loop`` body: one :func:`_step` of ``kind``, its trial's J written to row k of
+    the history; carry (iterate, history, k)."""
+    def body(_, carry):
+        st, hist, k = carry
+        st, j_t = _step(par, objective, drive, y, st, kind, quasi, shrink, max_radius)
+        return st, hist.at[k].set(j_t), k + 1
+    return body
+
+
 @eqx.filter_jit
 def _run_cycles(par, objective, drive, y, st, cycles, shrink, max_radius, every: int,
                 split: bool, quasi, rows: int):
@@ -224,11 +233,7 @@ def _run_cycles(par, objective, drive, y, st, cycles, shrink, max_radius, every:
     model's Hessian (with ``hessian_every`` > 1)."""
 
     def run(kind):
-        def body(_, carry):
-            st, hist, k = carry
-            st, j_t = _step(par, objective, drive, y, st, kind, quasi, shrink, max_radius)
-            return st, hist.at[k].set(j_t), k + 1
-        return body
+        return _loop_step(par, objective, drive, y, kind, quasi, shrink, max_radius)
 
     def cycle(_, carry):
         if every > 1:
@@ -245,11 +250,7 @@ def _run_gradient_steps(par, objective, drive, y, st, steps, shrink, max_radius,
     """``steps`` (traced, at most ``rows``) gradient steps with SR1 updates, one compiled
     loop: the steps after the last whole cycle of :func:`_run_cycles`, or, with
     ``hessian_every`` above the chunk, the steps between the exact ones."""
-    def body(_, carry):
-        st, hist, k = carry
-        st, j_t = _step(par, objective, drive, y, st, "gradient", True, shrink, max_radius)
-        return st, hist.at[k].set(j_t), k + 1
-
+    body = _loop_step(par, objective, drive, y, "gradient", True, shrink, max_radius)
     hist = jnp.zeros((rows,) + st.j.shape, st.j.dtype)
     st, hist, _ = jax.lax.fori_loop(0, steps, body, (st, hist, jnp.asarray(0)))
     return st, hist
