@@ -22,6 +22,8 @@ import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 from jaxtyping import Array, ArrayLike, Complex, Float, Inexact
 
+from . import _checks
+
 __all__ = ["LTI"]
 
 _TWO_PI = 2.0 * math.pi
@@ -75,8 +77,6 @@ class LTI(eqx.Module):
 
     def frf(self, freq_hz: Float[ArrayLike, " freq"]) -> Complex[Array, "freq p m"]:
         """Frequency response at ``freq_hz`` (Hz): s = i2πf, or z = e^{i2πfT} when discrete."""
-        from . import _checks
-
         f = _checks.frequency_grid(freq_hz, "LTI.frf(freq_hz=...)")
         return self.transfer(self.unit_circle_or_axis(_TWO_PI * f))
 

@@ -78,6 +78,7 @@ which is exact because the minimiser does not depend on where the iteration star
 jitted program, and ``track_modes`` re-orders the modes of such a batch so that each index
 follows one physical mode, by frequency proximity and mode-shape correlation (MAC).
 
+* ``_data``: the checks of the FRF data and their scaling, shared by the order and the fit.
 * ``_linear``: the rational basis and the linear least-squares sub-problem for given poles.
 * ``_vector_fit``: stage 1, vector fitting and the backward elimination of spare pairs.
 * ``_solver``: stage 2, the variable-projection residual and the Levenberg–Marquardt solver.

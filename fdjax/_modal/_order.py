@@ -38,6 +38,9 @@ import equinox as eqx
 import numpy as np
 from jaxtyping import ArrayLike, Complex, Float
 
+from .._checks import static_int
+from ._data import _check_inputs, _prepare
+
 # A zero of σ whose imaginary part is below this fraction of its modulus is a real pole.
 _REAL_TOL = 1e-6
 
@@ -354,8 +357,6 @@ _DIAGRAM_POINTS = 2500
 
 def _order_options(fn, n_freq, n_fixed, max_modes, vf_iterations, freq_tol, damping_tol,
                    max_damping, min_orders):
-    from .._checks import static_int
-
     # vector fitting at n pairs solves 2·n_freq equations for 4n + n_r + n_fixed + 1 unknowns
     cap = max(1, (2 * n_freq - n_fixed - 2) // 4 - 1)
     if max_modes is None:
@@ -409,8 +410,6 @@ def stabilisation_diagram(
     **Returns:** a :class:`StabilisationDiagram`; draw it with
     :func:`fdjax.plots.stabilisation_diagram`.
     """
-    from ._identify import _check_inputs
-
     fn = "stabilisation_diagram"
     freq_hz, frf, weights, _, static = _check_inputs(
         fn, 0, freq_hz, frf, 1, rigid_body, upper_residual, weights, None, vf_iterations, 0,
@@ -424,8 +423,6 @@ def stabilisation_diagram(
 
 
 def _diagram_of(freq_hz, frf, weights, real_poles, rigid_body, upper_residual, opts):
-    from ._identify import _prepare
-
     s, h, w, _, omega_ref = _prepare(freq_hz, frf, weights)
     n_freq = freq_hz.shape[0]
     frf_abs = np.sqrt(np.mean(np.abs(np.asarray(frf).reshape(n_freq, -1)) ** 2, axis=1))
