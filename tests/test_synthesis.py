@@ -53,10 +53,17 @@ def test_pid_parameterisation_round_trip_and_feedback_only():
     for k in ("kp", "ki", "kd", "wd", "k_ffv", "k_ffa"):
         np.testing.assert_allclose(getattr(back, k), getattr(pid, k), rtol=1e-13)
     assert par.names == fdjax.PID_PARAMETERS
-    # any θ: ω_d below Nyquist
+    # any θ: ω_d inside the default bounds, 10 Hz to 0.9 × Nyquist, reached at large |θ₃|
+    top = 2 * math.pi * 0.9 * 0.5 / fdjax.Servo().period
+    assert par.wd_hz == (10.0, 0.9 * 0.5 / fdjax.Servo().period)
     for th in 50 * np.random.default_rng(0).normal(size=(20, 6)):
         wd = float(par.to_controller(jnp.asarray(th)).wd)
-        assert 2 * math.pi * 10.0 * (1 - 1e-12) <= wd < math.pi / fdjax.Servo().period
+        assert 2 * math.pi * 10.0 * (1 - 1e-12) <= wd <= top * (1 + 1e-12)
+    for t3, bound in ((40.0, top), (-40.0, 2 * math.pi * 10.0)):
+        th = np.zeros(6)
+        th[3] = t3
+        np.testing.assert_allclose(float(par.to_controller(jnp.asarray(th)).wd), bound,
+                                   rtol=1e-12)
     fb = fdjax.PIDParameterisation(fdjax.reference_pid(), feedforward=False)
     c = fb.to_controller(jnp.asarray([0.1, 0.2, 0.3, 0.0, 5.0, -7.0]))
     assert float(c.k_ffv) == 0.0 and float(c.k_ffa) == 0.0
@@ -101,14 +108,20 @@ def test_interpolated_loop_is_linear_in_the_normalised_parameters():
 
 
 def test_designs_round_trip_bit_for_bit(tmp_path):
-    net = fdjax.ATANetwork((0.1, 0.7), width=5, key=jax.random.PRNGKey(2))
+    # bounds unlike the defaults in every field, and a network unlike the default one: what
+    # comes back from the JSON is compared too
+    odd = fdjax.MCMBounds.for_servo(
+        fdjax.Servo(period=1 / 16000), nyquist_fraction=0.8, freq_min_hz=20.0,
+        peak_gain=(1e-2, 5.0), peak_damping=(0.05, 0.8), peak_phase_max=2.0,
+        notch_damping=(0.02, 1.5), notch_depth_min=1e-2)
+    net = fdjax.ATANetwork((0.05, 0.75), width=5, gains=True, key=jax.random.PRNGKey(2))
     mcm = fdjax.reference_mcm()
     controllers = {
         "pid": fdjax.reference_pid(k_ffv=1.5, k_ffa=2.5),
         "fixed": fdjax.DoubleLoop(123.0, 4567.0, 89.0, k_ffv=0.9, k_ffa=7.7, mcm=mcm),
         "interp": fdjax.InterpolatedLoop(fdjax.DoubleLoop(150.0, 3000.0, 40.0), POSITIONS,
-                                         _designs(), BOUNDS),
-        "ata": fdjax.ScheduledLoop(fdjax.DoubleLoop(111.0, 2222.0, 33.0), net, BOUNDS),
+                                         _designs(), odd),
+        "ata": fdjax.ScheduledLoop(fdjax.DoubleLoop(111.0, 2222.0, 33.0), net, odd),
         # any MCM layout: none, two peaks alone
         "plain": fdjax.DoubleLoop(100.0, 300.0, 20.0),
         "two_peaks": fdjax.DoubleLoop(mcm=fdjax.MCM(fdjax.PeakFilter(
@@ -123,6 +136,9 @@ def test_designs_round_trip_bit_for_bit(tmp_path):
         assert len(a) == len(b) and type(back[name]) is type(c)
         for x, y in zip(a, b):
             np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    assert back["interp"].bounds == odd and back["ata"].bounds == odd
+    n = back["ata"].network
+    assert (n.travel_m, n.width, n.gains) == ((0.05, 0.75), 5, True)
     with pytest.raises(FileNotFoundError, match=r"`load_designs\(folder=\.\.\.\)`: no file"):
         fdjax.load_designs(tmp_path / "nothing")
     with pytest.raises(ValueError, match=r"'bare' must have an fdjax\.MCM .*got a PeakFilter"):
@@ -175,6 +191,14 @@ def test_certify_is_loop_margins_and_stability_at_each_position():
     assert ("certified at 3 positions" in cert.message) == cert.ok
     y_gm, v_gm = cert.worst("gain_margin_db")
     assert f"least gain margin {v_gm:.3g} dB at {y_gm * 1e3:.0f} mm (required 6 dB)" in cert.message
+    # the requirements are the caller's: relaxed, every stable position passes (the same
+    # compiled checks; the verdicts are drawn from them)
+    easy = fdjax.certify(sched, drive, y, freq_hz=f, gain_margin_db=0.0, phase_margin_deg=0.0,
+                         modulus_margin=1e-3)
+    assert easy.requirements == (0.0, 0.0, 1e-3)
+    np.testing.assert_array_equal(easy.modulus_margin, cert.modulus_margin)
+    assert np.all(easy.stable) and np.all(easy.passed) and easy.ok
+    assert "certified at 3 positions" in easy.message and "(required 0 dB)" in easy.message
     # the reference controller held fixed fails toward the screw end (unstable from 0.5 m)
     bad = fdjax.certify(ref, drive, y, freq_hz=f)
     assert not bad.ok and not bool(bad.stable[-1])
@@ -200,6 +224,19 @@ def test_certify_is_loop_margins_and_stability_at_each_position():
 
 
 # ------------------------------------------------------------------ export
+def test_python_control_export_names_its_arguments():
+    # checked before python-control is imported: named without it too
+    ref = fdjax.reference_controller()
+    for kw, msg in (({"position_m": 115.0}, r"position_m=\.\.\.\)` must be a finite table position "
+                                            r"in metres .*115 mm is 0\.115 m"),
+                    ({"position_m": np.nan}, r"position_m=\.\.\.\)` must be a finite"),
+                    ({"position_m": [0.2, 0.3]}, r"position_m=\.\.\.\)` must be a scalar"),
+                    ({"filter_method": "bogus"}, r"filter_method=\.\.\.\)` must be one of"),
+                    ({"form": "zpk"}, r"form=\.\.\.\)` must be 'ss' or 'tf', got 'zpk'")):
+        with pytest.raises(ValueError, match=r"`to_python_control\(" + msg):
+            fdjax.to_python_control(ref, **kw)
+
+
 def test_python_control_export_is_the_law_the_loop_runs():
     control = pytest.importorskip("control")
     net = fdjax.ATANetwork((0.1, 0.7), width=4, key=jax.random.PRNGKey(1))
@@ -221,15 +258,19 @@ def test_python_control_export_is_the_law_the_loop_runs():
     want_c = np.asarray(fdjax.reference_pid().law(None).transfer(jnp.asarray(s)))
     # ss → tf (polynomials) loses ~1e-7 near the integrator's pole at 3 Hz (measured 1.9e-7)
     np.testing.assert_allclose(np.stack([cont(sk)[0] for sk in s]), want_c, rtol=1e-6)
-    # a position in mm, NaN or a list, and an unknown discretisation are named
-    ref = fdjax.reference_controller()
-    for kw, msg in (({"position_m": 115.0}, r"position_m=\.\.\.\)` must be a finite table position "
-                                            r"in metres .*115 mm is 0\.115 m"),
-                    ({"position_m": np.nan}, r"position_m=\.\.\.\)` must be a finite"),
-                    ({"position_m": [0.2, 0.3]}, r"position_m=\.\.\.\)` must be a scalar"),
-                    ({"filter_method": "bogus"}, r"filter_method=\.\.\.\)` must be one of")):
-        with pytest.raises(ValueError, match=r"`to_python_control\(" + msg):
-            fdjax.to_python_control(ref, **kw)
+    # another servo period and the other discretisation: the export follows both (measured
+    # 1.1e-14; the two discretisations differ by 1.2e-3 there)
+    T16 = 1 / 16000
+    z16 = np.exp(2j * np.pi * f * T16)
+    sys16 = fdjax.to_python_control(sched, 0.4, servo=fdjax.Servo(period=T16),
+                                    filter_method="tustin")
+    assert sys16.dt == T16 and sys16.input_labels == list(fdjax.LAW_SIGNALS)
+    assert sys16.output_labels == ["u"]
+    want16 = np.asarray(law.discrete_transfer(jnp.asarray(z16), T16, "tustin"))
+    np.testing.assert_allclose(np.stack([sys16(zk)[0] for zk in z16]), want16, rtol=1e-10)
+    # and differs from the default's law there (what a dropped argument would give)
+    assert not np.allclose(want16, law.discrete_transfer(jnp.asarray(z16), T16, "fitted"),
+                           rtol=1e-6)
 
 
 def test_synthesise_names_its_arguments():
