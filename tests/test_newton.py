@@ -6,6 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from compile_events import compilations
+from jit_errors import CHECK_FAILED
 
 import fdjax
 from fdjax._tune._newton import _evaluate, _evaluate_split, trust_region_step
@@ -64,6 +65,10 @@ def test_trust_region_step_solves_the_subproblem():
         with pytest.raises(ValueError, match=r"`trust_region_step\(radius=\.\.\.\)` must be "
                                              r"finite and positive"):
             trust_region_step(np.ones(3), -np.eye(3), radius)
+    # and under jit, where the radius is traced
+    with pytest.raises(CHECK_FAILED, match=r"`trust_region_step\(radius=\.\.\.\)` must be "
+                                           r"finite and positive"):
+        jax.jit(trust_region_step)(np.ones(3), -np.eye(3), -1.0)
     with pytest.raises(ValueError, match=r"must have shapes \(p,\) and \(p, p\), got \(3,\) "
                                          r"and \(2, 2\)"):
         trust_region_step(np.ones(3), np.eye(2), 1.0)

@@ -492,6 +492,12 @@ def test_tuning_objective_checks_its_arguments():
             fdjax.tuning_objective(**kwargs)
     assert float(fdjax.tuning_objective(margin_width=np.float32(0.01)).margin_sharpness) == \
         pytest.approx(1000.0, rel=1e-6)
+    # the margins' grid follows the servo: 5 Hz to 0.975 of its Nyquist frequency, 3.9 kHz
+    # at the reference's 8 kHz, 2.925 kHz at 6 kHz (a fixed 3.9 kHz grid was refused there)
+    np.testing.assert_array_equal(fdjax.tuning_objective().freq_hz,
+                                  np.geomspace(5.0, 3900.0, 400))
+    slow = fdjax.tuning_objective(fdjax.Servo(period=1 / 6000))
+    np.testing.assert_allclose([slow.freq_hz[0], slow.freq_hz[-1]], [5.0, 2925.0], rtol=1e-14)
 
 
 def test_scheduled_loop_runs_the_continuous_simulation_and_the_moving_table():

@@ -238,6 +238,38 @@ def test_evaluate_names_its_arguments(drive):
     with pytest.raises(TypeError, match=r"`evaluate\(positions_m=\.\.\.\)` must be a number or "
                                         r"an array of numbers, got \['a'\]"):
         fdjax.evaluate(ok, drive, ["a"], progress=False)
+    # a schedule outside its network's travel, or with filters the servo cannot sample, is
+    # named by the argument that carries it
+    bounds = fdjax.MCMBounds.for_servo(fdjax.Servo())
+    short = fdjax.ScheduledLoop(ref, fdjax.ATANetwork((0.2, 0.6), width=3), bounds)
+    with pytest.raises(ValueError, match=r"`evaluate\(positions_m=\.\.\.\) for evaluate\("
+                                         r"controllers\['s'\]=\.\.\.\)` must be inside the "
+                                         r"network's travel \[0\.2, 0\.6\] m, got 0\.7"):
+        fdjax.evaluate({"s": short}, drive, [0.3, 0.7], progress=False)
+    fast = fdjax.MCMBounds.for_servo(fdjax.Servo(period=1 / 16000))
+    wide = fdjax.ScheduledLoop(ref, fdjax.ATANetwork((0.1, 0.7), width=3), fast)
+    with pytest.raises(ValueError, match=r"`evaluate\(controllers\['w'\]=\.\.\.\)` lets the "
+                                         r"filters reach 7200 Hz, not below the Nyquist "
+                                         r"frequency 4000 Hz"):
+        fdjax.evaluate({"w": wide}, drive, [0.3], progress=False)
+
+
+def test_evaluate_runs_one_program_per_kind_and_shape_of_controller(drive):
+    """Controllers share a compiled program when their trees and array shapes agree: the same
+    double loop with other gains does, one with a second peak filter does not (stacking it
+    with the first would fail)."""
+    from fdjax._tune._certify import fixed_controllers
+    from fdjax._tune._synthesis import _program_key
+
+    y = np.array([0.2, 0.5])
+    ref = fdjax.reference_controller(drive)
+    other = eqx.tree_at(lambda c: c.log_kv, ref, ref.log_kv - 1.0)
+    mcm = ref.mcm
+    two = eqx.tree_at(lambda c: c.mcm, ref, fdjax.MCM(fdjax.PeakFilter(
+        np.repeat(mcm.peak.K, 2), np.repeat(mcm.peak.omega, 2), np.repeat(mcm.peak.xi, 2),
+        np.repeat(mcm.peak.phi, 2)), mcm.notch))
+    keys = [_program_key(fixed_controllers(c, y)) for c in (ref, other, two)]
+    assert keys[0] == keys[1] and keys[0] != keys[2]
 
 
 # ------------------------------------------------------------------------------ tuning motion

@@ -139,6 +139,9 @@ def test_designs_round_trip_bit_for_bit(tmp_path):
     assert back["interp"].bounds == odd and back["ata"].bounds == odd
     n = back["ata"].network
     assert (n.travel_m, n.width, n.gains) == ((0.05, 0.75), 5, True)
+    with pytest.raises(TypeError, match=r"`save_designs\(controllers=\.\.\.\)` must be named "
+                                        r"by strings, got the key 1 \(int\)"):
+        fdjax.save_designs(tmp_path / "ints", {1: controllers["pid"]})
     with pytest.raises(FileNotFoundError, match=r"`load_designs\(folder=\.\.\.\)`: no file"):
         fdjax.load_designs(tmp_path / "nothing")
     with pytest.raises(ValueError, match=r"'bare' must have an fdjax\.MCM .*got a PeakFilter"):
@@ -199,6 +202,26 @@ def test_certify_is_loop_margins_and_stability_at_each_position():
     np.testing.assert_array_equal(easy.modulus_margin, cert.modulus_margin)
     assert np.all(easy.stable) and np.all(easy.passed) and easy.ok
     assert "certified at 3 positions" in easy.message and "(required 0 dB)" in easy.message
+    # a position gain so low (e⁻⁴ k_p, 3.7 1/s) that the position loop crosses unit gain
+    # below the grid's 5 Hz: its phase margin cannot be read there, so no position passes
+    # (|L| at 5 Hz measured 0.119); a grid from 0.05 Hz reads it and certifies the design
+    # (|L| 11.7 there; least phase margin 67°, the speed loop's)
+    weak = eqx.tree_at(lambda c: c.log_kp, soft, soft.log_kp - 4.0)
+    blind = fdjax.certify(weak, drive, y, freq_hz=f)
+    assert np.all(blind.stable) and not np.any(blind.passed)
+    assert np.all(blind.low_gain < 1) and "a gain crossover below the grid" in blind.message
+    seen = fdjax.certify(weak, drive, y, freq_hz=np.geomspace(0.05, 3990.0, 300))
+    assert seen.ok and np.all(seen.low_gain > 1), seen.message
+    assert blind.rows()["loop_gain_at_lowest_freq"] == blind.low_gain.tolist()
+    # arguments that are not a twin's options or a grid below Nyquist are named
+    with pytest.raises(TypeError, match=r"`certify\(twin=\.\.\.\)` must be an "
+                                        r"fdjax\.TwinOptions, got str"):
+        fdjax.certify(ref, drive, y, twin="full")
+    for grid, expected in ((np.geomspace(5.0, 5000.0, 50), r"below the servo's Nyquist "
+                                                             r"frequency 4000 Hz"),
+                           ([3.0, 2.0], "strictly increasing")):
+        with pytest.raises(ValueError, match=r"`certify\(freq_hz=\.\.\.\)` must be " + expected):
+            fdjax.certify(ref, drive, y, freq_hz=grid)
     # the reference controller held fixed fails toward the screw end (unstable from 0.5 m)
     bad = fdjax.certify(ref, drive, y, freq_hz=f)
     assert not bad.ok and not bool(bad.stable[-1])
@@ -227,6 +250,13 @@ def test_certify_is_loop_margins_and_stability_at_each_position():
 def test_python_control_export_names_its_arguments():
     # checked before python-control is imported: named without it too
     ref = fdjax.reference_controller()
+    # a schedule's position: required, inside its network's travel
+    sched = fdjax.ScheduledLoop(ref, fdjax.ATANetwork((0.1, 0.7), width=3), BOUNDS)
+    with pytest.raises(ValueError, match=r"`to_python_control\(position_m=\.\.\.\)` is required"):
+        fdjax.to_python_control(sched)
+    with pytest.raises(ValueError, match=r"`to_python_control\(position_m=\.\.\.\)` must be "
+                                         r"inside the network's travel \[0\.1, 0\.7\] m, got 0\.9"):
+        fdjax.to_python_control(sched, 0.9)
     for kw, msg in (({"position_m": 115.0}, r"position_m=\.\.\.\)` must be a finite table position "
                                             r"in metres .*115 mm is 0\.115 m"),
                     ({"position_m": np.nan}, r"position_m=\.\.\.\)` must be a finite"),

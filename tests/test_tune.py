@@ -159,6 +159,39 @@ def test_errors_name_the_argument():
         fdjax.DoubleLoopParameterisation(None)
     with pytest.raises(ValueError, match=r"k_ffv sets the scale of its parameter"):
         fdjax.DoubleLoopParameterisation(BOUNDS, fdjax.DoubleLoop(k_ffv=0.0))
+    with pytest.raises(TypeError, match=r"`MCMBounds\.for_servo\(period=\.\.\.\)` is set from "
+                                        r"the servo"):
+        fdjax.MCMBounds.for_servo(fdjax.Servo(), period=1e-4)
+    with pytest.raises(TypeError, match=r"`PIDParameterisation\(servo=\.\.\.\)` must be an "
+                                        r"fdjax\.Servo, got str"):
+        fdjax.PIDParameterisation(fdjax.reference_pid(k_ffv=1.0, k_ffa=1.0), servo="8 kHz")
+
+
+def test_tuners_refuse_filters_their_servo_cannot_sample():
+    """Bounds built for a 16 kHz servo let the filters reach 7.2 kHz, above the Nyquist
+    frequency of the objective's 8 kHz servo: every tuner and the certificate refuse them before
+    compiling, naming the argument that carries them (a run would otherwise fail in the
+    middle, in the filters' discretisation)."""
+    drive = fdjax.reference_drive()
+    fast = fdjax.MCMBounds.for_servo(fdjax.Servo(period=1 / 16000))
+    par = fdjax.DoubleLoopParameterisation(fast, fdjax.reference_controller(drive))
+    obj = fdjax.Objective(fdjax.tuning_motion(), np.geomspace(5.0, 3900.0, 16))
+    start = fdjax.reference_controller(drive)
+    nyq = r"lets the filters reach 7200 Hz, not below the Nyquist frequency 4000 Hz"
+    for tuner in (fdjax.tune_local, fdjax.tune_newton, fdjax.tune_simplex, fdjax.tune_robust):
+        with pytest.raises(ValueError, match=rf"`{tuner.__name__}\(parameterisation=\.\.\.\)` "
+                                             + nyq):
+            tuner(par, obj, drive, [0.3], start)
+    pid = fdjax.PIDParameterisation(fdjax.reference_pid(k_ffv=1.0, k_ffa=1.0),
+                                    servo=fdjax.Servo(period=1 / 16000))
+    with pytest.raises(ValueError, match=r"`tune_local\(parameterisation=\.\.\.\)` lets the "
+                                         r"filters reach 7200 Hz"):
+        fdjax.tune_local(pid, obj, drive, [0.3], fdjax.reference_pid(k_ffv=1.0, k_ffa=1.0))
+    sched = fdjax.ScheduledLoop(start, fdjax.ATANetwork(drive.travel_m, width=3), fast)
+    with pytest.raises(ValueError, match=r"`train_schedule\(schedule=\.\.\.\)` " + nyq):
+        fdjax.train_schedule(sched, obj, drive)
+    with pytest.raises(ValueError, match=r"`certify\(controller=\.\.\.\)` " + nyq):
+        fdjax.certify(sched, drive, [0.3])
 
 
 # ------------------------------------------------------------------ smooth margin penalties
@@ -229,10 +262,24 @@ def test_penalty_settings_are_checked():
             fdjax.margin_penalty(L, **kw)
     with pytest.raises(ValueError, match=r"`soft_min\(beta=\.\.\.\)` must be finite and positive"):
         fdjax._tune.soft_min(jnp.ones(3), 0.0)
-    # under jit the settings are traced (an objective's leaves, checked where it is built)
+    # under jit the settings are traced, and checked there too
     traced = jax.jit(lambda b, w: fdjax.margin_penalty(L, beta=b, width=w))(200.0, 0.05)
     np.testing.assert_allclose(traced, fdjax.margin_penalty(L, beta=200.0, width=0.05),
                                rtol=1e-14)
+    for name, value in (("beta", -1.0), ("width", 0.0)):
+        with pytest.raises(CHECK_FAILED, match=rf"`margin_penalty\({name}=\.\.\.\)` must be "
+                                               r"finite and positive"):
+            jax.jit(lambda v: fdjax.margin_penalty(L, **{name: v}))(value)
+    with pytest.raises(CHECK_FAILED,
+                       match=r"`soft_min\(beta=\.\.\.\)` must be finite and positive"):
+        jax.jit(lambda b: fdjax._tune.soft_min(jnp.ones(3), b))(0.0)
+    # the requirements are numbers in their ranges
+    for name, value, expected in (("modulus_margin", np.nan, r"in \(0, 1\]"),
+                                  ("gain_margin_db", -6.0, "finite and non-negative"),
+                                  ("phase_margin_deg", 400.0, r"in \[0, 180\) degrees")):
+        with pytest.raises(ValueError, match=rf"`margin_penalty\({name}=\.\.\.\)` must be "
+                                             + expected):
+            fdjax.margin_penalty(L, **{name: value})
 
 
 def test_penalty_grows_with_gain_and_stays_finite():

@@ -53,6 +53,7 @@ def to_python_control(controller: AbstractController,
         import control
     except ImportError as exc:  # pragma: no cover - depends on the environment
         raise ImportError(f"`{fn}` needs python-control: pip install control") from exc
+    position_m = controller.check_position(position_m, f"{fn}(position_m=...)")
     law = controller.law(position_m)
     period = float(servo.period) if discrete else None
     lti = realise_law(law, period=period, filter_method=filter_method)

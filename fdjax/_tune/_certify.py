@@ -11,6 +11,10 @@ loop is checked where it will run.  At every position Y_k of the grid:
 
 and the controller passes when every position is stable with |GM| ≥ GM_min, |PM| ≥ PM_min and
 MM ≥ MM_min (gain margin in the log sense: a phase crossover 6 dB away in either direction).
+A margin is read from the crossings the frequency grid brackets; a gain crossover below the
+grid's lowest frequency would leave its phase margin unread, so a position passes only where
+every open loop's gain there is above 1 (|L(f_min)| > 1: the loops' integrators put every gain
+crossover above it).
 """
 
 from __future__ import annotations
@@ -23,8 +27,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Float
 
-from .._analysis import check_stability, loop_margins
-from .._checks import instance, real_array, static_number
+from .._analysis import check_stability, loop_margins, open_loop
+from .._checks import check, frequency_grid, instance, real_array, static_number
 from .._control._controllers import AbstractController
 from .._control._servo import Servo
 from .._drive._model import BallScrewDrive
@@ -32,6 +36,7 @@ from .._drive._twin import TwinOptions, state_space
 from .._memory import release
 from .._simulation import SampledData, simulate
 from .._trajectory import Trajectory
+from ._parameterisation import check_sampled_by
 from ._penalties import MARGIN_REQUIREMENTS
 from ._schedule import InterpolatedLoop, ScheduledLoop
 
@@ -48,7 +53,10 @@ class Certificate(eqx.Module):
         gain_margin_db, phase_margin_deg, modulus_margin: the least over the break points (of
             |GM| in dB and |PM| in degrees: a margin below 0 dB or 0° counts by its size).
         requirements: (GM_min dB, PM_min °, MM_min).
-        passed: per position, stable with every margin met.
+        passed: per position, stable with every margin met and the grid below every gain
+            crossover.
+        low_gain: the least |L| over the break points at the grid's lowest frequency (above 1:
+            every gain crossover lies on the grid).
     """
 
     positions_m: np.ndarray
@@ -59,6 +67,7 @@ class Certificate(eqx.Module):
     modulus_margin: np.ndarray
     passed: np.ndarray
     requirements: tuple[float, float, float] = eqx.field(static=True)
+    low_gain: np.ndarray | None = None
 
     @property
     def ok(self) -> bool:
@@ -96,6 +105,11 @@ class Certificate(eqx.Module):
             bad = self.positions_m[~self.stable]
             parts.append(f"unstable at {bad.size} positions, first {bad[0] * 1e3:.0f} mm, last "
                          f"{bad[-1] * 1e3:.0f} mm")
+        if self.low_gain is not None and not np.all(self.low_gain > 1):
+            low = self.positions_m[~(self.low_gain > 1)]
+            parts.append(f"the loop gain at the grid's lowest frequency is not above 1 at "
+                         f"{low.size} positions, first {low[0] * 1e3:.0f} mm (a gain crossover "
+                         "below the grid: give freq_hz starting lower)")
         if not np.any(self.stable):
             return "; ".join(parts)
         where = "" if np.all(self.stable) else " where stable"
@@ -109,11 +123,14 @@ class Certificate(eqx.Module):
 
     def rows(self) -> dict[str, list]:
         """Columns of a CSV or JSON table, one row per position."""
+        low = {} if self.low_gain is None else {
+            "loop_gain_at_lowest_freq": np.asarray(self.low_gain).tolist()}
         return {"position_mm": (self.positions_m * 1e3).tolist(),
                 "stable": self.stable.tolist(), "growth_rate_per_s": self.growth_rate.tolist(),
                 "gain_margin_db": self.gain_margin_db.tolist(),
                 "phase_margin_deg": self.phase_margin_deg.tolist(),
-                "modulus_margin": self.modulus_margin.tolist(), "passed": self.passed.tolist()}
+                "modulus_margin": self.modulus_margin.tolist(), **low,
+                "passed": self.passed.tolist()}
 
 
 def _least(m, attr, absolute=False):
@@ -156,10 +173,13 @@ def _point_checks(controllers, drive, ys, servo, f, twin, motion, duration):
         method = SampledData().sharing(c, plant, servo)
         st = check_stability(c, plant, servo=servo, method=method)
         m = loop_margins(c, plant, f, servo=servo, method=method)
+        first = open_loop(c, plant, f[:1], servo=servo, method=method)
+        low = jnp.min(jnp.stack([jnp.abs(L[0]) for L in (
+            first.plant_input, first.speed, first.position) if L is not None]))
         out = {"growth": st.growth_rate, "stable": st.stable,
                "gm": _least(m, "gain_margin_db", absolute=True),
                "pm": _least(m, "phase_margin_deg", absolute=True),
-               "mm": _least(m, "modulus_margin")}
+               "mm": _least(m, "modulus_margin"), "low_gain": low}
         if motion is not None:
             sim = simulate(c, plant, motion, method, servo=servo, duration=duration,
                            throw=False)
@@ -167,6 +187,23 @@ def _point_checks(controllers, drive, ys, servo, f, twin, motion, duration):
         return out
 
     return jax.lax.map(one, (controllers, ys))
+
+
+def check_bounds(controller: AbstractController, servo: Servo, where: str) -> None:
+    """A scheduled controller's filter bounds must lie below the servo's Nyquist frequency
+    (:func:`check_sampled_by`)."""
+    if isinstance(controller, (ScheduledLoop, InterpolatedLoop)):
+        check_sampled_by(controller.bounds.freq_hz[1], servo, where)
+
+
+def grid_below_nyquist(freq_hz, servo: Servo, where: str) -> np.ndarray:
+    """A margins' grid (Hz) checked as the sampled loop needs it: 1-D, positive, strictly
+    increasing, below the servo's Nyquist frequency."""
+    top = 0.5 / float(servo.period)
+    f = np.asarray(frequency_grid(freq_hz, where), float)
+    check(f, lambda v: v < top, where, f"below the servo's Nyquist frequency {top:.6g} Hz "
+          "(the margins are those of the sampled loop)")
+    return f
 
 
 def default_grid(servo: Servo) -> np.ndarray:
@@ -181,10 +218,10 @@ def certificate(y, checks, gain_margin_db=6.0, phase_margin_deg=30.0,
     c = {k: np.asarray(v) for k, v in checks.items()}
     stable = c["stable"].astype(bool)
     passed = (stable & (c["gm"] >= gain_margin_db) & (c["pm"] >= phase_margin_deg)
-              & (c["mm"] >= modulus_margin))
+              & (c["mm"] >= modulus_margin) & (c["low_gain"] > 1))
     return Certificate(np.asarray(y, float), stable, c["growth"], c["gm"], c["pm"], c["mm"],
                        passed, (float(gain_margin_db), float(phase_margin_deg),
-                                float(modulus_margin)))
+                                float(modulus_margin)), c["low_gain"])
 
 
 def certify(
@@ -216,6 +253,9 @@ def certify(
     instance(controller, AbstractController, f"{fn}(controller=...)", "an fdjax controller")
     instance(drive, BallScrewDrive, f"{fn}(drive=...)")
     instance(servo, Servo, f"{fn}(servo=...)")
+    if twin is not None:
+        instance(twin, TwinOptions, f"{fn}(twin=...)")
+    check_bounds(controller, servo, f"{fn}(controller=...)")
     given = {"gain_margin_db": gain_margin_db, "phase_margin_deg": phase_margin_deg,
              "modulus_margin": modulus_margin}
     for name, ok, expected in MARGIN_REQUIREMENTS:
@@ -229,7 +269,8 @@ def certify(
                          f"position, got shape {y.shape}")
     y = np.asarray(drive._check_travel(y, fn, "positions_m"))
     y = np.asarray(controller.check_position(y, f"{fn}(positions_m=...)"))
-    f = default_grid(servo) if freq_hz is None else np.asarray(freq_hz, float)
+    f = default_grid(servo) if freq_hz is None else grid_below_nyquist(
+        freq_hz, servo, f"{fn}(freq_hz=...)")
     twin = (TwinOptions() if twin is None else twin).resolve(drive, fn)
     release()
     checks = point_checks(fixed_controllers(controller, y), drive, y, servo=servo, freq_hz=f,

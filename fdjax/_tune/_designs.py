@@ -78,6 +78,10 @@ def save_designs(folder: str | os.PathLike, controllers: dict[str, AbstractContr
     if not isinstance(controllers, dict) or not controllers:
         raise TypeError("`save_designs(controllers=...)` must be a non-empty dict of name → "
                         "controller")
+    for k in controllers:  # JSON's keys are strings: another key would not come back
+        if not isinstance(k, str):
+            raise TypeError(f"`save_designs(controllers=...)` must be named by strings, got "
+                            f"the key {k!r} ({type(k).__name__})")
     meta = {"format": _FORMAT, "names": list(controllers),
             "controllers": {k: _describe(k, c) for k, c in controllers.items()},
             "metadata": dict(metadata or {})}

@@ -30,7 +30,7 @@ from .._drive._model import BallScrewDrive
 from ._local import Descent, descend, smooth_max
 from ._objective import Objective
 from ._optimisers import optimiser_or
-from ._parameterisation import LOG_GAIN_LIMIT
+from ._parameterisation import LOG_GAIN_LIMIT, check_sampled_by
 from ._schedule import ScheduledLoop
 
 __all__ = ["train_schedule", "batch_positions", "held_gains"]
@@ -131,6 +131,7 @@ def train_schedule(
     _checks.instance(schedule, ScheduledLoop, f"{fn}(schedule=...)")
     _checks.instance(objective, Objective, f"{fn}(objective=...)")
     _checks.instance(drive, BallScrewDrive, f"{fn}(drive=...)")
+    check_sampled_by(schedule.bounds.freq_hz[1], objective.servo, f"{fn}(schedule=...)")
     objective = objective.resolved(drive, fn)
     steps, batch, chunk = (_checks.static_int(value, f"{fn}({name}=...)", least)
                            for name, value, least in (("steps", steps, 1), ("batch", batch, 2),

@@ -22,7 +22,7 @@ from .._control._controllers import AbstractController
 from .._drive._model import BallScrewDrive
 from ._objective import Objective, ObjectiveTerms
 from ._optimisers import checked_optimiser, optimiser_or
-from ._parameterisation import AbstractParameterisation
+from ._parameterisation import AbstractParameterisation, check_sampled_by
 
 __all__ = ["LocalTuning", "RobustTuning", "tune_local", "tune_robust", "tune_shared_gains",
            "smooth_max", "descend", "Descent"]
@@ -35,7 +35,8 @@ class LocalTuning(eqx.Module):
         positions_m: the design positions (m), (n,).
         theta: the final normalised parameters per position, (n, p).
         best_theta: per position the parameters of the lowest objective seen, (n, p).
-        history: the objective J at every step and position, (steps, n).
+        history: the objective J at every step and position, (steps, n);
+            :func:`fdjax.tune_newton`'s has the start's J first, (steps + 1, n).
         terms: the objective's terms at ``best_theta`` (batched over the positions).
         seconds: wall time of the steps without the first call, which compiles (s): the
             steps after the first chunk (0.0 for a run of one chunk); :func:`fdjax.tune_newton`
@@ -227,6 +228,8 @@ def _check_common(fn, parameterisation, objective, drive, positions_m, steps, ch
     _checks.inside(pos, lo, hi, f"{fn}(positions_m=...)")
     for name, value in (("steps", steps), ("chunk", chunk)):
         _checks.static_int(value, f"{fn}({name}=...)", 1)
+    check_sampled_by(parameterisation.highest_frequency_hz, objective.servo,
+                     f"{fn}(parameterisation=...)")
     return pos, objective.resolved(drive, fn)
 
 

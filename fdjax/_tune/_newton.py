@@ -65,15 +65,21 @@ def trust_region_step(
 
     p is characterised by (H + λI) p = −g, H + λI positive semi-definite, λ ≥ 0 and
     λ (Δ − ‖p‖) = 0 (Moré & Sorensen 1983); the bisection meets ‖p‖ = Δ to ~1e-15 relative.
-    Pure and differentiable-free (``jit``, ``vmap``)."""
+    Pure and differentiable-free (``jit``, ``vmap``); the radius is checked (finite and
+    positive) under ``jit`` too."""
     g = jnp.asarray(g, jnp.float64)
     H = jnp.asarray(H, jnp.float64)
     if g.ndim != 1 or H.shape != (g.shape[0], g.shape[0]):
         raise ValueError(f"`trust_region_step(g=..., H=...)` must have shapes (p,) and (p, p), "
                          f"got {g.shape} and {H.shape}")
-    delta = jnp.asarray(radius, jnp.float64)
-    if _checks.is_concrete(delta):
-        _checks.positive(delta, "trust_region_step(radius=...)")
+    where = "trust_region_step(radius=...)"
+    delta = _checks.positive(_checks.real_scalar(radius, where), where)
+    return _trust_region_step(g, H, delta)
+
+
+def _trust_region_step(g, H, delta):
+    """:func:`trust_region_step` without its checks, for the tuner's loop (its radii are
+    positive by construction)."""
     w, V = jnp.linalg.eigh(0.5 * (H + H.T))
     gt = V.T @ g
 
@@ -192,7 +198,7 @@ def _step(par, objective, drive, y, st: _Newton, kind: str, quasi, shrink, max_r
     """One trust-region step at every position; ``kind``: "exact" (the trial's J, ∇J and
     ∇²J), "gradient" (J and ∇J; the Hessian by SR1 where ``quasi``) or "split" (the margin
     term's Hessian, SR1 for the rest).  Returns the new iterate and J at the trial."""
-    step, pred = jax.vmap(trust_region_step)(st.g, st.H + st.B, st.delta)
+    step, pred = jax.vmap(_trust_region_step)(st.g, st.H + st.B, st.delta)
     trial = st.theta + step
     B, g_m = st.B, st.g_m
     if kind == "split":

@@ -41,7 +41,7 @@ from .._drive._twin import TwinOptions, state_space
 from .._results import RESULTS
 from .._simulation import SampledData, simulate
 from .._trajectory import Trajectory
-from ._penalties import MARGIN_REQUIREMENTS, margin_penalty
+from ._penalties import MARGIN_REQUIREMENTS, penalty
 
 __all__ = ["Objective", "ObjectiveTerms"]
 
@@ -195,10 +195,8 @@ class Objective(eqx.Module):
         # the break points' loops as one batch: one penalty program for all of them
         Ls = jnp.stack([L for L in (loops.plant_input, loops.speed, loops.position)
                         if L is not None])
-        return jnp.sum(margin_penalty(Ls, modulus_margin=self.modulus_margin,
-                                      gain_margin_db=self.gain_margin_db,
-                                      phase_margin_deg=self.phase_margin_deg,
-                                      beta=self.margin_sharpness, width=self.margin_width))
+        return jnp.sum(penalty(Ls, self.modulus_margin, self.gain_margin_db,
+                               self.phase_margin_deg, self.margin_sharpness, self.margin_width))
 
     def margin_term(self, controller: AbstractController, drive: BallScrewDrive,
                     position_m: Float[ArrayLike, ""]) -> Float[Array, ""]:

@@ -172,6 +172,11 @@ class MCMBounds(eqx.Module):
         ``kwargs``."""
         fn = "MCMBounds.for_servo"
         instance(servo, Servo, f"{fn}(servo=...)")
+        for name in ("period", "freq_hz"):
+            if name in kwargs:
+                raise TypeError(f"`{fn}({name}=...)` is set from the servo (its period and "
+                                "nyquist_fraction, freq_min_hz); build MCMBounds(...) directly "
+                                f"to give {name}")
         nyquist_fraction = static_number(nyquist_fraction, f"{fn}(nyquist_fraction=...)",
                                          lambda v: 0.0 < v < 1.0, "a number in (0, 1)")
         hi = nyquist_fraction * 0.5 / float(servo.period)
@@ -251,6 +256,26 @@ class AbstractParameterisation(eqx.Module):
         """θ of a controller (the inverse of :meth:`to_controller`)."""
         raise NotImplementedError
 
+    @property
+    def highest_frequency_hz(self) -> float | None:
+        """The highest filter frequency (Hz) any θ gives, which the servo that runs the
+        controller must sample (below its Nyquist frequency); None: no filter."""
+        return None
+
+
+def check_sampled_by(highest_hz: float | None, servo: Servo, where: str) -> None:
+    """Refuse filter bounds that reach the Nyquist frequency of ``servo``, the servo whose
+    sampled loop the controllers run in (bounds built for another servo): eagerly, naming
+    ``where``, instead of the discretisation's error in the middle of a run."""
+    if highest_hz is None:
+        return
+    nyquist = 0.5 / float(servo.period)
+    if not highest_hz < nyquist:
+        raise ValueError(
+            f"`{where}` lets the filters reach {highest_hz:.6g} Hz, not below the Nyquist "
+            f"frequency {nyquist:.6g} Hz of the servo they run on (period {float(servo.period):.6g}"
+            " s): build the bounds for that servo, e.g. MCMBounds.for_servo(servo)")
+
 
 def _reference_scales(where: str, values, names) -> tuple[float, ...]:
     if not all(is_concrete(v) for v in values):
@@ -314,6 +339,11 @@ class DoubleLoopParameterisation(AbstractParameterisation):
                           k_ffv=on * ffv * th[3], k_ffa=on * ffa * th[4],
                           mcm=self.mcm.to_mcm(th[5:]))
 
+    @property
+    def highest_frequency_hz(self) -> float:
+        """The MCM's highest filter frequency (Hz), ``mcm.freq_hz[1]``."""
+        return float(self.mcm.freq_hz[1])
+
     def from_controller(self, loop: DoubleLoop) -> Float[Array, " 12"]:
         """θ of a double loop whose MCM lies inside the bounds (inverse of
         :meth:`to_controller`)."""
@@ -361,6 +391,7 @@ class PIDParameterisation(AbstractParameterisation):
         self.feedforward = bool(feedforward)
         self.reference = _reference_scales(where, vals, ("kp", "ki", "kd", "k_ffv", "k_ffa"))
         sv = Servo() if servo is None else servo
+        instance(sv, Servo, "PIDParameterisation(servo=...)")
         if wd_hz is None:
             wd_hz = (10.0, 0.9 * 0.5 / float(sv.period))
         lo, hi = _pair(wd_hz, "PIDParameterisation(wd_hz=...)")
@@ -375,6 +406,11 @@ class PIDParameterisation(AbstractParameterisation):
     def names(self) -> tuple[str, ...]:
         """Names of θ's entries."""
         return PID_PARAMETERS
+
+    @property
+    def highest_frequency_hz(self) -> float:
+        """The derivative filter's highest corner (Hz), ``wd_hz[1]``."""
+        return float(self.wd_hz[1])
 
     def to_controller(self, theta: Float[ArrayLike, " 6"]) -> PIDLoop:
         """The PID of θ (class docstring)."""

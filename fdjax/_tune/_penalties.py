@@ -43,18 +43,14 @@ MARGIN_REQUIREMENTS = (
 """The margin requirements an objective and a certificate take: (name, test, expected)."""
 
 
-def _positive(value, where: str):
-    """A finite positive setting, checked when the caller gives a number (an objective's traced
-    leaves were checked where the objective was built)."""
-    if _checks.is_concrete(value):
-        _checks.positive(value, where)
-    return value
-
-
 def soft_min(d: Float[ArrayLike, "*batch freq"], beta: float) -> Float[Array, "*batch"]:
     r"""Smooth minimum over the last axis, −(1/β) log Σ_k e^{−β d_k}: at most min d, and above
-    min d − (log n)/β."""
-    beta = _positive(beta, "soft_min(beta=...)")
+    min d − (log n)/β.  β finite and positive (checked under ``jit`` too)."""
+    return _soft_min(d, _checks.positive(_checks.real_scalar(beta, "soft_min(beta=...)"),
+                                         "soft_min(beta=...)"))
+
+
+def _soft_min(d, beta):
     d = jnp.asarray(d)
     return -jax.nn.logsumexp(-beta * d, axis=-1) / beta
 
@@ -113,14 +109,28 @@ def margin_penalty(
     d̃_j the smooth minimum of the j-th distance over the grid and d_j its requirement: the
     modulus margin m for |1 + L|, and a clearance of w/4 from the gain-margin segment and the
     phase-margin arc (zero distance is the violation there).  ``beta`` sets the smooth
-    minimum's sharpness (error ≤ log(n)/β), ``width`` w the penalty's scale.
+    minimum's sharpness (error ≤ log(n)/β), ``width`` w the penalty's scale: both finite and
+    positive (checked under ``jit`` too); the requirements are numbers (modulus margin in
+    (0, 1], gain margin ≥ 0 dB, phase margin in [0°, 180°)).
     """
-    beta = _positive(beta, "margin_penalty(beta=...)")
-    width = _positive(width, "margin_penalty(width=...)")
+    fn = "margin_penalty"
+    given = {"modulus_margin": modulus_margin, "gain_margin_db": gain_margin_db,
+             "phase_margin_deg": phase_margin_deg}
+    for name, ok, expected in MARGIN_REQUIREMENTS:
+        _checks.static_number(given[name], f"{fn}({name}=...)", ok, expected)
+    beta, width = (_checks.positive(_checks.real_scalar(v, f"{fn}({name}=...)"),
+                                    f"{fn}({name}=...)")
+                   for name, v in (("beta", beta), ("width", width)))
+    return penalty(L, modulus_margin, gain_margin_db, phase_margin_deg, beta, width)
+
+
+def penalty(L, modulus_margin, gain_margin_db, phase_margin_deg, beta, width):
+    """:func:`margin_penalty` without its checks: for :class:`fdjax.Objective`, whose settings
+    were checked where it was built (its requirements are static, its β and w leaves)."""
     L = jnp.asarray(L)
     terms = (
         (modulus_distance(L), modulus_margin),
         (gain_distance(L, gain_margin_db), width / 4),
         (phase_distance(L, phase_margin_deg), width / 4),
     )
-    return sum(jax.nn.softplus((req - soft_min(d, beta)) / width) ** 2 for d, req in terms)
+    return sum(jax.nn.softplus((req - _soft_min(d, beta)) / width) ** 2 for d, req in terms)

@@ -328,8 +328,9 @@ def fit_network(
 
     ``steps`` optimiser steps (a ``lax.scan``: one compilation) of ``optimiser`` (default
     ``optax.adam(1e-2)``) on the network's weights.  Returns the trained network and the loss
-    after each step.  At least one design; its positions inside the network's travel (m: a
-    position in mm is named with its value in metres) and its targets finite.
+    at each step, evaluated before its update (the first is the start's; the returned network
+    is one update past the last).  At least one design; its positions inside the network's
+    travel (m: a position in mm is named with its value in metres) and its targets finite.
     """
     fn = "fit_network"
     _checks.instance(network, ATANetwork, f"{fn}(network=...)")

@@ -54,7 +54,7 @@ from .._drive._reference import reference_drive
 from .._drive._twin import TwinOptions
 from .._memory import release
 from .._trajectory import Trajectory, reciprocating
-from ._certify import certificate, default_grid, fixed_controllers, point_checks
+from ._certify import certificate, check_bounds, default_grid, fixed_controllers, point_checks
 from ._end_to_end import train_schedule
 from ._local import Descent, LocalTuning, RobustTuning, tune_local, tune_robust, tune_shared_gains
 from ._objective import Objective
@@ -95,7 +95,8 @@ def tuning_motion() -> Trajectory:
 def tuning_objective(servo: Servo | None = None, *, feedforward: bool = False,
                      kept_modes: int | None = 6, margin_width: float = 0.05) -> Objective:
     """The objective of the synthesis: :class:`Objective` on :func:`tuning_motion`, margins on
-    400 frequencies from 5 Hz to 3.9 kHz, the twin with ``kept_modes`` modes.  The error scale
+    400 frequencies from 5 Hz to 0.975 of the servo's Nyquist frequency (3.9 kHz at the
+    reference servo's 8 kHz), the twin with ``kept_modes`` modes.  The error scale
     e_ref is 100 µm for feedback-only loops (their RMS error on this motion is 85–200 µm) and
     1 µm with feed-forward (1–5 µm), so that J is of order one and the margin penalties
     weigh the same in both.  ``margin_width`` is the margin penalties' width w, and their
@@ -117,8 +118,9 @@ def tuning_objective(servo: Servo | None = None, *, feedforward: bool = False,
                                         2 * TwinOptions().n_elements + 5)
     where = f"{fn}(margin_width=...)"
     margin_width = _checks.positive(_checks.real_scalar(margin_width, where), where)
-    return Objective(tuning_motion(), np.geomspace(5.0, 3900.0, 400),
-                     servo=reference_servo() if servo is None else servo,
+    servo = reference_servo() if servo is None else servo
+    return Objective(tuning_motion(), np.geomspace(5.0, 0.975 * 0.5 / float(servo.period), 400),
+                     servo=servo,
                      twin=TwinOptions(kept_modes=kept_modes),
                      error_scale_m=1e-6 if feedforward else 1e-4,
                      margin_width=margin_width, margin_sharpness=10.0 / margin_width)
@@ -312,7 +314,7 @@ def synthesise(
     release()
     _say(progress, "robust PID over 13 positions, from the reference PID and from the PID "
                    "tuned at 115 mm")
-    robust_y = np.linspace(0.1, 0.7, 13)
+    robust_y = robust_positions(drive)
     robust = [tune_robust(ppar, wide, drive, robust_y, s0, steps=pid_steps,
                           optimiser=_adam(pid_steps), progress=progress)
               for s0 in (ppar.from_controller(pid0), pid_coarse.best_theta[0])]
@@ -383,16 +385,29 @@ def _at_115(par, wide, sharp, drive, start, evaluations, steps, refine, progress
     return search, coarse, fine
 
 
+def robust_positions(drive: BallScrewDrive) -> np.ndarray:
+    """The 13 positions, evenly over the drive's travel, at which the robust designs (the PID
+    and the MCM) are tuned."""
+    return np.linspace(*drive.travel_m, 13)
+
+
 def robust_mcm(par: DoubleLoopParameterisation, objective: Objective, drive: BallScrewDrive,
                schedule: ScheduledLoop, *, steps: int = 120,
                progress: bool = False) -> RobustTuning:
     """The robust MCM of Fig. 18: one double loop with its MCM (gains and filters) for every
     position, by ``steps`` L-BFGS steps of :func:`tune_robust` over 13 positions on the
     travel, from ``schedule``'s controller at the screw end (where the margins bind)."""
-    y = np.linspace(*drive.travel_m, 13)
+    y = robust_positions(drive)
     start = par.from_controller(schedule.controller(drive.travel_m[1]))
     return tune_robust(par, objective, drive, y, start, steps=steps,
                        optimiser=default_optimiser("lbfgs"), chunk=10, progress=progress)
+
+
+def _program_key(controllers: AbstractController):
+    """What decides the compiled program of stacked controllers: their kind (the tree) and their
+    arrays' shapes and types (a second peak filter is another program), not their values."""
+    leaves, tree = jax.tree_util.tree_flatten(eqx.filter(controllers, eqx.is_array))
+    return tree, tuple((x.shape, x.dtype) for x in leaves)
 
 
 def evaluate(
@@ -426,14 +441,17 @@ def evaluate(
     if y.ndim != 1:
         raise ValueError(f"`evaluate(positions_m=...)` must be a position or a 1-D array of "
                          f"positions, got shape {y.shape}")
+    for name, c in controllers.items():
+        where = f"evaluate(controllers[{name!r}]=...)"
+        check_bounds(c, servo, where)
+        c.check_position(y, f"evaluate(positions_m=...) for {where}")
     release()
     twin = TwinOptions().resolve(drive, "evaluate")
     f = default_grid(servo)
     groups: dict = {}
     for name, c in controllers.items():
         fixed = fixed_controllers(c, y)
-        key = jax.tree_util.tree_structure(eqx.filter(fixed, eqx.is_array))
-        groups.setdefault(key, []).append((name, fixed))
+        groups.setdefault(_program_key(fixed), []).append((name, fixed))
     out = {}
     for members in groups.values():
         stacked = jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs),
