@@ -35,8 +35,8 @@ def test_local_tuning_improves_every_position():
     np.testing.assert_array_equal(np.asarray(r.evaluations), np.ones((20, 2)))  # one a step
     best = np.asarray(r.terms.total)
     # the terms are those of best_theta, the lowest J of the history (another program:
-    # round-off, measured 2e-16)
-    np.testing.assert_allclose(best, np.min(h, axis=0), rtol=1e-13)
+    # round-off, measured 2e-16 alone and 7.7e-13 in the suite, whose XLA flags differ)
+    np.testing.assert_allclose(best, np.min(h, axis=0), rtol=1e-11)
     assert np.all(best < 0.5 * h[0]), (h[0], best)
     assert np.all(np.asarray(r.terms.stable))
     # J falls mostly through the margin penalties; the tracking error falls too (measured
