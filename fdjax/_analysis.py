@@ -139,11 +139,11 @@ class Stability(eqx.Module):
 
 
 # ------------------------------------------------------------------------------------ checks
-def _check_controller(controller, fn: str) -> AbstractController:
+def _check_controller(controller, fn: str, traced: bool = False) -> AbstractController:
     _checks.instance(controller, AbstractController, f"{fn}(controller=...)",
                      "an fdjax controller (DoubleLoop, PIDLoop or a subclass of "
                      "fdjax.AbstractController)")
-    return _checks.finite_parameters(controller, f"{fn}(controller=...)")
+    return _checks.finite_parameters(controller, f"{fn}(controller=...)", traced=traced)
 
 
 def _check_servo(servo, fn: str) -> Servo:
@@ -211,10 +211,13 @@ def _plant(plant, position_m, fn: str, *, twin=None, freq_hz=None, screw_ratio=N
 
 
 def _entry(fn, controller, plant, servo, method, position_m, twin, *,
-           freq_hz=None, min_points=1, screw_ratio=None):
+           freq_hz=None, min_points=1, screw_ratio=None, traced=True):
     """The checks every entry point makes: (controller, servo, method, kind, plant, scalar,
-    frequency grid or None)."""
-    controller = _check_controller(controller, fn)
+    frequency grid or None).  A traced controller's parameters are checked finite too (an
+    ``eqx.error_if``: a NaN gain would read as infinite margins), except with ``traced=False``
+    (:func:`open_loop`, which the tuning objective evaluates at an optimiser's trial points,
+    whose non-finite values the tuners refuse themselves)."""
+    controller = _check_controller(controller, fn, traced)
     servo, method = _check_servo(servo, fn), _check_method(method, fn)
     f = None if freq_hz is None else _grid(freq_hz, fn, min_points)
     kind, p, scalar = _plant(plant, position_m, fn, twin=twin,
@@ -314,7 +317,7 @@ def open_loop(
     """
     controller, servo, method, kind, p, scalar, f = _entry(
         "open_loop", controller, plant, servo, method, position_m, twin,
-        freq_hz=freq_hz, screw_ratio=screw_ratio,
+        freq_hz=freq_hz, screw_ratio=screw_ratio, traced=False,
     )
     loops = _open_loop_jit(controller, kind, p, f, servo, method)
     return OpenLoop(freq_hz=f, **_squeeze(loops, scalar, kind))

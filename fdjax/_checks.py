@@ -345,8 +345,9 @@ def finite_parameters(tree, where: str, traced: bool = False):
     """Every floating-point array leaf of a parameter pytree (a controller, a drive) finite.
     Concrete leaves are checked here, the first non-finite one named by its path; traced ones
     only with ``traced=True``, by an ``eqx.error_if`` on the returned tree.  Returns the tree."""
+    # array-like: a leaf set to a Python or NumPy float (eqx.tree_at(..., float("nan"))) too
     leaves = [(path, x) for path, x in jax.tree_util.tree_leaves_with_path(tree)
-              if eqx.is_inexact_array(x)]
+              if eqx.is_inexact_array(x) or isinstance(x, float | complex | np.inexact)]
     for path, x in leaves:
         a = np.asarray(x) if is_concrete(x) else None
         if a is not None and not np.all(np.isfinite(a)):

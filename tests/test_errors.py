@@ -301,6 +301,21 @@ def test_a_controller_with_nan_parameters_is_named():
     with pytest.raises(eqx.EquinoxRuntimeError,  # what eqx.filter_jit raises
                        match=r"`simulate\(controller=\.\.\.\)` must have finite parameters"):
         jax.block_until_ready(run(bad))
+    # the margins and the stability verdict check it under jit too (they read a NaN gain as
+    # infinite margins, and as "unstable, growing at nan 1/s")
+    twin = fdjax.state_space(drive, 0.3, twin=fdjax.TwinOptions(kept_modes=4))
+    for fn in ("loop_margins", "check_stability"):
+        call = eqx.filter_jit(lambda c, fn=fn: (
+            fdjax.loop_margins(c, twin, f) if fn == "loop_margins"
+            else fdjax.check_stability(c, twin)))
+        with pytest.raises(eqx.EquinoxRuntimeError,
+                           match=rf"`{fn}\(controller=\.\.\.\)` must have finite parameters"):
+            jax.block_until_ready(call(bad))
+    # a leaf set to a Python float is a parameter too
+    floating = eqx.tree_at(lambda c: c.log_kv, fdjax.DoubleLoop(), float("nan"))
+    with pytest.raises(ValueError, match=r"`check_stability\(controller=\.\.\.\)` must have "
+                                         r"finite parameters, got nan in \.log_kv"):
+        fdjax.check_stability(floating, drive, position_m=0.3)
     # the certificate of no position certifies nothing
     with pytest.raises(ValueError, match=r"`certify\(positions_m=\.\.\.\)` must be a 1-D array "
                                          r"of at least one position, got shape \(0,\)"):

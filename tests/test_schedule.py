@@ -99,6 +99,18 @@ def test_save_and_load_are_bit_exact(tmp_path):
     assert back.network.width == 5 and back.network.gains is True
     with pytest.raises(FileNotFoundError, match=r"`load_schedule\(path=\.\.\.\)`: no file"):
         fdjax.load_schedule(tmp_path / "missing.eqx")
+    # leaves cut short, or a JSON that is not one: named, with the file
+    (tmp_path / "cut.eqx").write_bytes(path.read_bytes()[:100])
+    (tmp_path / "cut.json").write_text((tmp_path / "schedule.json").read_text())
+    with pytest.raises(ValueError, match=r"`load_schedule\(path=\.\.\.\)`: .*cut\.eqx' does not "
+                                         r"hold the leaves of a schedule"):
+        fdjax.load_schedule(tmp_path / "cut.eqx")
+    (tmp_path / "cut.json").write_text("[1, 2]")
+    with pytest.raises(ValueError, match=r"cut\.json' is not the JSON file of an fdjax schedule "
+                                         r"\(it holds a list"):
+        fdjax.load_schedule(tmp_path / "cut.eqx")
+    for f in ("cut.eqx", "cut.json"):
+        (tmp_path / f).unlink()
     # the leaves without their JSON; the JSON given for the leaves; a folder that is not there
     (tmp_path / "lone.eqx").write_bytes(b"")
     with pytest.raises(FileNotFoundError, match=r"no file .*lone\.json' \(the hyperparameters "

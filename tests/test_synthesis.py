@@ -142,6 +142,25 @@ def test_designs_round_trip_bit_for_bit(tmp_path):
     with pytest.raises(TypeError, match=r"`save_designs\(controllers=\.\.\.\)` must be named "
                                         r"by strings, got the key 1 \(int\)"):
         fdjax.save_designs(tmp_path / "ints", {1: controllers["pid"]})
+    # a corrupt or truncated file, malformed JSON, or the file given for its folder: named
+    leaves = (tmp_path / "controllers.eqx").read_bytes()
+    for name, eqx_bytes, json_text, match in (
+            ("cut", leaves[:len(leaves) // 2], None, r"controllers\.eqx' does not hold the "
+                                                     r"leaves of the designs"),
+            ("junk", b"junk" * 8, None, r"does not hold the leaves of the designs"),
+            ("bad_json", leaves, "{'x': 1", r"controllers\.json' is not the JSON file of a set "
+                                            r"of fdjax designs")):
+        bad = tmp_path / name
+        bad.mkdir()
+        (bad / "controllers.eqx").write_bytes(eqx_bytes)
+        (bad / "controllers.json").write_text(
+            json_text or (tmp_path / "controllers.json").read_text())
+        with pytest.raises(ValueError, match=r"`load_designs\(folder=\.\.\.\)`: .*" + match):
+            fdjax.load_designs(bad)
+    with pytest.raises(NotADirectoryError, match=r"must be the folder that holds controllers\.eqx "
+                                                 r"and controllers\.json, got the file .*did you "
+                                                 r"mean"):
+        fdjax.load_designs(tmp_path / "controllers.eqx")
     with pytest.raises(FileNotFoundError, match=r"`load_designs\(folder=\.\.\.\)`: no file"):
         fdjax.load_designs(tmp_path / "nothing")
     with pytest.raises(ValueError, match=r"'bare' must have an fdjax\.MCM .*got a PeakFilter"):

@@ -8,10 +8,8 @@ were tuned for, the objective, the units).
 
 from __future__ import annotations
 
-import json
 import os
 
-import equinox as eqx
 import jax.numpy as jnp
 
 from .._control._controllers import AbstractController, DoubleLoop, PIDLoop
@@ -23,6 +21,8 @@ from ._schedule import (
     ScheduledLoop,
     bounds_from_json,
     bounds_json,
+    read_json,
+    read_leaves,
     write_pair,
 )
 
@@ -104,15 +104,23 @@ def load_designs(
     for the reference drive, ``"mcm_ata_e2e"`` the end-to-end schedule; the metadata says how
     they were tuned)."""
     folder = SHIPPED if folder is None else os.fspath(folder)
+    where = "load_designs(folder=...)"
+    if os.path.isfile(folder):  # the file given for its folder
+        raise NotADirectoryError(f"`{where}` must be the folder that holds controllers.eqx and "
+                                 f"controllers.json, got the file {folder!r}; did you mean "
+                                 f"{os.path.dirname(folder) or '.'!r}?")
     leaves, meta_path = (os.path.join(folder, n) for n in ("controllers.eqx", "controllers.json"))
     for p in (leaves, meta_path):
         if not os.path.exists(p):
-            raise FileNotFoundError(f"`load_designs(folder=...)`: no file {p!r}")
-    with open(meta_path) as f:
-        meta = json.load(f)
+            raise FileNotFoundError(f"`{where}`: no file {p!r}")
+    meta = read_json(meta_path, where, "a set of fdjax designs")
     if meta.get("format") != _FORMAT:
-        raise ValueError(f"`load_designs(folder=...)`: {meta_path!r} is not a set of fdjax "
+        raise ValueError(f"`{where}`: {meta_path!r} is not a set of fdjax "
                          f"designs (format {meta.get('format')!r}, expected {_FORMAT!r})")
-    like = {k: _skeleton(meta["controllers"][k]) for k in meta["names"]}
-    got = eqx.tree_deserialise_leaves(leaves, like)
-    return {k: got[k] for k in meta["names"]}, meta["metadata"]
+    try:
+        like = {k: _skeleton(meta["controllers"][k]) for k in meta["names"]}
+    except (KeyError, TypeError, ValueError) as err:
+        raise ValueError(f"`{where}`: {meta_path!r} does not describe a set of fdjax designs "
+                         f"({type(err).__name__}: {err})") from err
+    got = read_leaves(leaves, like, where, "the designs")
+    return {k: got[k] for k in meta["names"]}, meta.get("metadata", {})

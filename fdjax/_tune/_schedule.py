@@ -462,6 +462,33 @@ def write_pair(leaves_path: str, tree, json_path: str, meta: dict, fn: str) -> N
                 os.remove(t)
 
 
+def read_json(path: str, where: str, kind: str) -> dict:
+    """The JSON object in ``path``; a file that is not one (malformed, truncated, of another
+    kind) is a ``ValueError`` naming ``where`` and the file."""
+    try:
+        with open(path, encoding="utf-8") as f:
+            meta = json.load(f)
+    except (ValueError, UnicodeDecodeError) as err:
+        raise ValueError(f"`{where}`: {path!r} is not the JSON file of {kind} ({err})") from None
+    if not isinstance(meta, dict):
+        raise ValueError(f"`{where}`: {path!r} is not the JSON file of {kind} (it holds a "
+                         f"{type(meta).__name__}, not an object)")
+    return meta
+
+
+def read_leaves(path: str, like, where: str, kind: str):
+    """``like``'s leaves read from ``path`` (``eqx.tree_deserialise_leaves``); a file that does
+    not hold them (truncated, corrupt, or the leaves of something else) is a ``ValueError``
+    naming ``where`` and the file."""
+    try:
+        with open(path, "rb") as f:  # a file object: equinox adds no suffix to it
+            return eqx.tree_deserialise_leaves(f, like)
+    except Exception as err:  # numpy's and equinox's errors of a file that is not the tree
+        raise ValueError(f"`{where}`: {path!r} does not hold the leaves of {kind} that its JSON "
+                         f"describes (truncated, corrupt, or written for something else): "
+                         f"{type(err).__name__}: {err}") from err
+
+
 def load_schedule(path: str | os.PathLike) -> ScheduledLoop:
     """Read a schedule written by :func:`save_schedule` (the leaves at ``path``, the
     hyperparameters from the JSON file beside it, ``path`` with suffix ``.json``).  A path
@@ -482,14 +509,17 @@ def load_schedule(path: str | os.PathLike) -> ScheduledLoop:
     if not os.path.exists(meta_path):
         raise FileNotFoundError(f"`load_schedule(path=...)`: no file {meta_path!r} (the "
                                 f"hyperparameters that save_schedule writes beside {leaves!r})")
-    with open(meta_path) as f:
-        meta = json.load(f)
+    where = "load_schedule(path=...)"
+    meta = read_json(meta_path, where, "an fdjax schedule")
     if meta.get("format") != _FORMAT:
-        raise ValueError(f"`load_schedule(path=...)`: {meta_path!r} is not an fdjax schedule "
+        raise ValueError(f"`{where}`: {meta_path!r} is not an fdjax schedule "
                          f"(format {meta.get('format')!r}, expected {_FORMAT!r})")
-    bounds = bounds_from_json(meta["bounds"])
-    net = ATANetwork(tuple(meta["network"]["travel_m"]), width=meta["network"]["width"],
-                     gains=bool(meta["network"].get("gains", False)))
-    like = ScheduledLoop(DoubleLoop(**meta["gains"]), net, bounds)
-    with open(leaves, "rb") as f:  # a file object: equinox adds no suffix to it
-        return eqx.tree_deserialise_leaves(f, like)
+    try:
+        bounds = bounds_from_json(meta["bounds"])
+        net = ATANetwork(tuple(meta["network"]["travel_m"]), width=meta["network"]["width"],
+                         gains=bool(meta["network"].get("gains", False)))
+        like = ScheduledLoop(DoubleLoop(**meta["gains"]), net, bounds)
+    except (KeyError, TypeError, ValueError) as err:
+        raise ValueError(f"`{where}`: {meta_path!r} does not describe an fdjax schedule "
+                         f"({type(err).__name__}: {err})") from err
+    return read_leaves(leaves, like, where, "a schedule")
