@@ -447,3 +447,17 @@ def test_a_motion_out_of_the_travel_is_refused_before_the_run():
     with pytest.raises(ValueError, match=r"reaches 0\.815 m, outside the travel \[0\.1, 0\.7\] "
                                          r"m$"):
         fdjax.simulate(loop, drive, fdjax.reciprocating(stroke=0.7), position_m=0.115)
+
+
+def test_a_motion_built_inside_jit_says_what_to_give():
+    """A motion built inside the user's jitted function has a traced duration, which cannot
+    set the run's number of samples: the error names the reference and what to give (the
+    motion built outside, or the duration), not an argument the user never passed."""
+    drive = fdjax.reference_drive()
+    loop = fdjax.reference_controller(drive)
+    run = eqx.filter_jit(lambda p: fdjax.simulate(loop, drive, fdjax.reciprocating(),
+                                                  position_m=p).rms_error())
+    with pytest.raises(ValueError, match=r"`simulate\(reference=\.\.\.\)` was built inside a "
+                                         r"traced function .* build the motion outside, or give "
+                                         r"`simulate\(duration=\.\.\.\)` as a number"):
+        run(0.3)

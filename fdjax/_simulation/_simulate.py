@@ -200,6 +200,7 @@ def simulate(
             f"`{fn}(reference=...)` must have an evaluate(t) method (e.g. an "
             f"fdjax.Trajectory), got {type(reference).__name__}"
         )
+    given = duration is not None
     if duration is None:
         duration = getattr(reference, "duration", None)
         if duration is None:
@@ -209,10 +210,13 @@ def simulate(
             # inside jit, indexing a closed-over trajectory is staged: read its end on the host
             duration = float(np.asarray(knots)[-1])
     if not _checks.is_concrete(duration):
+        if given:
+            raise ValueError(f"`{fn}(duration=...)` must be a concrete number (it sets the "
+                             "number of output samples), not a value traced by jit")
         raise ValueError(
-            f"`{fn}(duration=...)` must be a concrete number (it sets the number of output "
-            "samples)"
-        )
+            f"`{fn}(reference=...)` was built inside a traced function (jit, vmap, grad), so "
+            "its duration, which sets the number of output samples, is not known there: build "
+            f"the motion outside, or give `{fn}(duration=...)` as a number")
     duration = _checks.concrete_float(duration, f"{fn}(duration=...)")
     if not (math.isfinite(duration) and duration > 0):
         raise ValueError(f"`{fn}(duration=...)` must be positive, got {duration:.6g}")
