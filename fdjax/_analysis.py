@@ -164,7 +164,7 @@ def _plant(plant, position_m, fn: str, *, twin=None, freq_hz=None, screw_ratio=N
         if position_m is None:
             raise ValueError(f"`{fn}(position_m=...)` is required when the plant is a drive")
         pos = plant._check_positions(position_m, fn)
-        return "drive", (plant, pos, twin.resolve(plant, fn)), jnp.ndim(position_m) == 0
+        return "drive", (plant, pos, twin.resolve(plant, fn)), np.ndim(position_m) == 0
     if position_m is not None and isinstance(plant, StateSpace):
         raise ValueError(f"`{fn}(position_m=...)` is only for a BallScrewDrive or FRF plant")
     if isinstance(plant, StateSpace):
@@ -180,7 +180,10 @@ def _plant(plant, position_m, fn: str, *, twin=None, freq_hz=None, screw_ratio=N
             f"FRF array of shape (..., n_freq, 3, 2), got {type(plant).__name__}"
         )
     H = jnp.asarray(plant)
-    if freq_hz is None or H.ndim < 3 or H.shape[-2:] != (3, 2) or H.shape[-3] != freq_hz.shape[0]:
+    if freq_hz is None:  # closed_loop, check_stability: a model's poles, not a response's
+        raise TypeError(f"`{fn}(plant=...)` must be a drive or a StateSpace, not an FRF array "
+                        f"(shape {H.shape}): the closed loop's poles need a model")
+    if H.ndim < 3 or H.shape[-2:] != (3, 2) or H.shape[-3] != freq_hz.shape[0]:
         n = "n_freq" if freq_hz is None else f"n_freq = {freq_hz.shape[0]}"
         raise ValueError(
             f"`{fn}(plant=...)` must be a BallScrewDrive (with position_m), a StateSpace, or an "
@@ -229,8 +232,6 @@ def _entry(fn, controller, plant, servo, method, position_m, twin, *,
         checked = controller.check_position(position_m, where)  # None: a fixed controller
         if checked is not None:
             p = (p[0], p[1], jnp.broadcast_to(jnp.asarray(checked, jnp.float64), p[2].shape))
-    if f is None and kind == "frf":
-        raise TypeError(f"`{fn}(plant=...)` must be a drive or a StateSpace, not an FRF array")
     if f is not None:
         f = _below_nyquist(f, kind, method, servo, fn)
     return controller, servo, method, kind, p, scalar, f
@@ -588,17 +589,19 @@ def gain_headroom(
                                      "a number > 1")
     rtol = _checks.static_number(rtol, f"{fn}(rtol=...)", lambda v: 0 < v <= 0.1,
                                  "a number in (0, 0.1]")
-    _check_controller(controller, fn)
-    _check_servo(servo, fn)
-    _check_method(method, fn)
+    # every argument checked here, named for the caller (the search calls check_stability)
+    _, _, _, kind, _, scalar, _ = _entry(fn, controller, plant, servo, method, position_m, twin)
     if isinstance(plant, BallScrewDrive):
-        if position_m is None:
-            raise ValueError(f"`{fn}(position_m=...)` is required when the plant is a drive")
-        position_m = np.asarray(plant._check_travel(position_m, fn))  # named for the caller
+        position_m = np.asarray(plant._check_travel(position_m, fn))
         # the twin's modes counted once, not at every step of the search
         twin = _twin_options(twin, fn).resolve(plant, fn)
     pos = None if position_m is None else np.asarray(position_m, np.float64)
     k_m = servo.k_motor
+    if kind == "model" and not scalar:  # a batch of twins: g for each, as for positions
+        n = plant.A.shape[0]
+        return np.array([gain_headroom(controller, jax.tree_util.tree_map(
+            lambda x, i=i: x[i] if getattr(x, "ndim", 0) and x.shape[0] == n else x, plant),
+            servo=servo, method=method, max_gain=max_gain, rtol=rtol) for i in range(n)])
 
     def stable(g, p):
         s = eqx.tree_at(lambda s: s.k_motor, servo, k_m * g)

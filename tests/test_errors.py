@@ -461,3 +461,30 @@ def test_a_motion_built_inside_jit_says_what_to_give():
                                          r"traced function .* build the motion outside, or give "
                                          r"`simulate\(duration=\.\.\.\)` as a number"):
         run(0.3)
+
+
+def test_batches_of_twins_and_frf_arrays_where_a_model_is_needed():
+    """simulate takes one twin (a batch is named, with what to do); gain_headroom gives g per
+    twin of a batch, as per position of a drive, and names its own arguments; the closed
+    loop's poles refuse an FRF array as such."""
+    drive = fdjax.reference_drive()
+    loop = fdjax.reference_controller(drive)
+    opts = fdjax.TwinOptions(kept_modes=4)
+    twins = jax.vmap(lambda p: fdjax.state_space(drive, p, twin=opts))(jnp.array([0.2, 0.6]))
+    with pytest.raises(ValueError, match=r"`simulate\(plant=\.\.\.\)` must be the twin at one "
+                                         r"position .*got a batch of twins \(A of shape "
+                                         r"\(2, 8, 8\)\): jax\.vmap"):
+        fdjax.simulate(loop, twins, fdjax.reciprocating())
+    g_batch = fdjax.gain_headroom(loop, twins, rtol=0.05)
+    g_drive = fdjax.gain_headroom(loop, drive, position_m=[0.2, 0.6], twin=opts, rtol=0.05)
+    assert g_batch.shape == (2,) and g_batch[0] > 1 and g_batch[1] == 0.0  # unstable at 0.6 m
+    np.testing.assert_array_equal(g_batch, g_drive)
+    with pytest.raises(ValueError, match=r"`gain_headroom\(position_m=\.\.\.\)` is only for a "
+                                         r"BallScrewDrive"):
+        fdjax.gain_headroom(loop, twins, position_m=0.2)
+    frf = np.ones((16, 3, 2), complex)
+    for fn in (fdjax.check_stability, fdjax.closed_loop):
+        with pytest.raises(TypeError, match=rf"`{fn.__name__}\(plant=\.\.\.\)` must be a drive "
+                                            r"or a StateSpace, not an FRF array \(shape "
+                                            r"\(16, 3, 2\)\)"):
+            fn(loop, frf)

@@ -254,6 +254,11 @@ def simulate(
                 f"`{fn}(position_m=..., moving=True)` need a BallScrewDrive plant (the model is "
                 f"rebuilt along the motion), got a {type(plant).__name__}"
             )
+        if plant.A.ndim != 2:
+            raise ValueError(
+                f"`{fn}(plant=...)` must be the twin at one position (A of shape (n, n)), got a "
+                f"batch of twins (A of shape {plant.A.shape}): jax.vmap the simulation over "
+                "them, or give the drive with one position_m")
         pos0, travel = None, (-math.inf, math.inf)
     else:
         raise TypeError(
