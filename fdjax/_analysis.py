@@ -234,6 +234,7 @@ def _entry(fn, controller, plant, servo, method, position_m, twin, *,
             p = (p[0], p[1], jnp.broadcast_to(jnp.asarray(checked, jnp.float64), p[2].shape))
     if f is not None:
         f = _below_nyquist(f, kind, method, servo, fn)
+    method.check_use(controller, p if kind == "model" else None, servo, f"{fn}(method=...)")
     return controller, servo, method, kind, p, scalar, f
 
 

@@ -488,3 +488,27 @@ def test_batches_of_twins_and_frf_arrays_where_a_model_is_needed():
                                             r"or a StateSpace, not an FRF array \(shape "
                                             r"\(16, 3, 2\)\)"):
             fn(loop, frf)
+
+
+def test_a_shared_discretisation_serves_its_own_design_only():
+    """SampledData.sharing holds one design's discretisation around one twin: the closed loop,
+    the margins and the run of that design use it; another plant kind, twin or controller is
+    refused (it used to run the shared law with the other's plant, e.g. a stable verdict at
+    0.6 m that was 0.115 m's)."""
+    drive = fdjax.reference_drive()
+    ref = fdjax.reference_controller(drive)
+    opts = fdjax.TwinOptions(kept_modes=4)
+    twin = fdjax.state_space(drive, 0.115, twin=opts)
+    shared = fdjax.SampledData().sharing(ref, twin, fdjax.Servo())
+    own = fdjax.check_stability(ref, twin, method=shared)
+    plain = fdjax.check_stability(ref, twin)
+    np.testing.assert_allclose(own.growth_rate, plain.growth_rate, rtol=1e-12)
+    with pytest.raises(ValueError, match=r"`check_stability\(method=\.\.\.\)` holds the "
+                                         r"discretisation of one design around one twin"):
+        fdjax.check_stability(ref, drive, position_m=[0.115, 0.6], method=shared, twin=opts)
+    other = r"holds the discretisation of another design, twin or servo"
+    with pytest.raises(ValueError, match=r"`check_stability\(method=\.\.\.\)` " + other):
+        fdjax.check_stability(fdjax.DoubleLoop(), twin, method=shared)
+    with pytest.raises(ValueError, match=r"`simulate\(method=\.\.\.\)` " + other):
+        fdjax.simulate(ref, fdjax.state_space(drive, 0.6, twin=opts), fdjax.reciprocating(),
+                       shared)

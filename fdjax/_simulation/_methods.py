@@ -88,6 +88,10 @@ class AbstractLoopModel(eqx.Module):
         """The highest frequency the model's open loops are defined at (Hz)."""
         return math.inf
 
+    def check_use(self, controller, plant, servo, where: str) -> None:
+        """Refuse, eagerly, a use the model cannot serve (``where``: the caller's argument);
+        ``plant`` is one twin, a batch of them, or None for a drive or an FRF array."""
+
     def poles_to_s(self, lam, servo):
         """Continuous-time equivalents of the closed loop's eigenvalues (1/s)."""
         return lam
@@ -129,6 +133,26 @@ class SampledData(AbstractLoopModel):
             return self.shared
         law = controller.law(plant.position_m)
         return SampledParts.of(law, plant, servo.period, self.filter_method)
+
+    def check_use(self, controller, plant, servo, where: str) -> None:
+        """A shared discretisation (:meth:`sharing`) serves the one design and twin it was
+        built from: another plant than one twin is refused, and, where the arguments are
+        concrete (an eager call), another controller, twin or servo is found by building the
+        discretisation again and comparing."""
+        if self.shared is None:
+            return
+        if plant is None or plant.A.ndim != 2:
+            raise ValueError(f"`{where}` holds the discretisation of one design around one twin "
+                             "(SampledData.sharing): give that twin as the plant (not a drive, "
+                             "a batch or an FRF array), or use SampledData() without it")
+        leaves = jax.tree_util.tree_leaves(
+            eqx.filter((self.shared, controller, plant, servo), eqx.is_array))
+        if all(is_concrete(x) for x in leaves):
+            fresh = _parts(SampledData(self.filter_method), controller, plant, servo)
+            if not bool(eqx.tree_equal(fresh, self.shared)):
+                raise ValueError(f"`{where}` holds the discretisation of another design, twin "
+                                 "or servo (SampledData.sharing(controller, plant, servo) serves "
+                                 "those three only); share this one's, or use SampledData()")
 
     def sharing(self, controller, plant, servo) -> SampledData:
         """This model holding the discretisation of ``controller`` around ``plant``: its closed
