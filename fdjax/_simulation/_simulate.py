@@ -223,7 +223,6 @@ def simulate(
     eb = _checks.positive(_checks.real_scalar(error_bound, f"{fn}(error_bound=...)"),
                           f"{fn}(error_bound=...)")
     moving = _checks.static_bool(moving, f"{fn}(moving=...)")
-    moving = _checks.static_bool(moving, f"{fn}(moving=...)")
     if not moving:  # a moving table rebuilds the loop and says so itself
         method.check_use(controller, plant if isinstance(plant, StateSpace) else None, servo,
                          f"{fn}(method=...)")
