@@ -213,3 +213,33 @@ def test_shared_discretisation_is_the_loop_built_apart(drive, mcm):
     with pytest.raises(ValueError, match=r"rebuilds the loop at every position"):
         fdjax.simulate(loop, drive, ref, shared, servo=SERVO, position_m=0.4, moving=True,
                        twin=TWIN8, duration=0.01)
+
+
+def test_a_moving_run_that_rests_on_an_unstable_loop_is_unstable():
+    """The reference controller's loop is unstable at rest from 0.5 m.  A moving run that
+    starts there, or ends there, is reported unstable with the position and the loop's growth
+    rate, as the frozen run is (it used to say "ok": the error had not yet passed its bound);
+    one that stays where the loop is stable is ok, with the frozen loop's growth rate."""
+    drive_ = fdjax.reference_drive()
+    ref = fdjax.reference_controller(drive_)
+    kw = dict(moving=True, twin=fdjax.TwinOptions(kept_modes=6), throw=False)
+    frozen = fdjax.simulate(ref, drive_, jerk_limited(1e-4, 0.05, 2.0, 400.0), position_m=0.6,
+                            duration=0.02, twin=kw["twin"], throw=False)
+    start = fdjax.simulate(ref, drive_, jerk_limited(1e-4, 0.05, 2.0, 400.0), position_m=0.6,
+                           duration=0.02, **kw)
+    assert start.result == fdjax.RESULTS.unstable == frozen.result
+    # the loop at rest at the end, 0.1 mm on: within 0.1 % of the frozen one's (measured 17.62
+    # and 17.63 1/s)
+    np.testing.assert_allclose(start.growth_rate, frozen.growth_rate, rtol=1e-3)
+    assert "closed loop unstable at table position 0.6" in start.message
+    end = fdjax.simulate(ref, drive_, jerk_limited(0.25, 0.3, 2.0, 400.0), position_m=0.3, **kw)
+    assert end.result == fdjax.RESULTS.unstable and float(end.growth_rate) > 0
+    np.testing.assert_allclose(end.unstable_at_m, 0.55, rtol=1e-12)
+    assert "unstable at table position 0.55 m (the loop at rest there)" in end.message
+    with pytest.raises(RuntimeError, match=r"unstable at table position 0\.55 m \(the loop at "
+                                           r"rest there\): pole at .* Hz growing"):
+        fdjax.simulate(ref, drive_, jerk_limited(0.25, 0.3, 2.0, 400.0), position_m=0.3,
+                       moving=True, twin=kw["twin"])
+    ok = fdjax.simulate(ref, drive_, jerk_limited(1e-4, 0.05, 2.0, 400.0), position_m=0.3,
+                        duration=0.02, **kw)
+    assert ok.result == fdjax.RESULTS.successful and float(ok.growth_rate) < 0

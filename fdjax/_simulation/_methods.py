@@ -88,6 +88,11 @@ class AbstractLoopModel(eqx.Module):
         """The highest frequency the model's open loops are defined at (Hz)."""
         return math.inf
 
+    def frozen_growth(self, controller, plant, servo):
+        """The growth rate (1/s) of the least stable pole of the closed loop around the twin
+        ``plant`` (≥ 0: unstable); the models that run a simulation define it."""
+        raise NotImplementedError
+
     def check_use(self, controller, plant, servo, where: str) -> None:
         """Refuse, eagerly, a use the model cannot serve (``where``: the caller's argument);
         ``plant`` is one twin, a batch of them, or None for a drive or an FRF array."""
@@ -231,10 +236,18 @@ class SampledData(AbstractLoopModel):
         sl = self.closed_loop(controller, plant, servo)
         Y, finite = lifted_outputs(sl.A, sl.B, sl.C, sl.D, W)
         failed_at, Y = first_bad(finite, Y, W, bound)
-        growth = growth_rate(sl.A, servo.period)
+        growth = self._growth(sl, servo)
         result = RESULTS.where(failed_at < W.shape[0], RESULTS.diverged, RESULTS.successful)
         result = RESULTS.where(growth >= 0, RESULTS.unstable, result)
         return Y, failed_at, result, growth
+
+    def _growth(self, sl, servo):
+        return growth_rate(sl.A, servo.period)
+
+    def frozen_growth(self, controller, plant, servo):
+        """The least stable pole's growth rate ln|z|/T (1/s) of the sampled loop around
+        ``plant``."""
+        return self._growth(self.closed_loop(controller, plant, servo), servo)
 
     def run_moving(self, controller, moving, W, positions, mid_positions, servo, bound):
         r"""The time-varying recursion s_{k+1} = A_d(Y_{k+1/2}) s_k + B_d(Y_{k+1/2}) w_k,
@@ -547,9 +560,19 @@ class PadeODE(AbstractLoopModel):
         sol = self._solve(term, jnp.zeros(cl.A.shape[0]), t, dt)
         X = sol.ys
         Y, failed_at, result = self._result(sol, X, X @ cl.C.T + W @ cl.D.T, W, bound)
-        growth = growth_rate(expm(cl.A * dt), dt)
+        growth = self._growth(cl, dt)
         result = RESULTS.where(growth >= 0, RESULTS.unstable, result)
         return Y, failed_at, result, growth
+
+    @staticmethod
+    def _growth(cl, dt):
+        return growth_rate(expm(cl.A * dt), dt)
+
+    def frozen_growth(self, controller, plant, servo):
+        """The least stable pole's growth rate max Re s (1/s) of the continuous loop around
+        ``plant`` (from its transition matrix over one output period)."""
+        return self._growth(self.closed_loop(controller, plant, servo),
+                            self.output_period(servo))
 
     def run_moving(self, controller, moving, W, positions, mid_positions, servo, bound):
         r"""One run with the table moving (:func:`fdjax.simulate` with ``moving=True``): the

@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
@@ -60,9 +61,13 @@ class Simulation(eqx.Module):
         growth_rate: max Re s over the closed loop's poles (1/s) for a frozen plant, from the
             spectral radius of the one-step transition matrix (works under jit and vmap);
             ≥ 0 makes ``result`` ``unstable`` even before the run has grown past
-            ``error_bound``.  None for the moving table.
+            ``error_bound``.  For the moving table, that of the loop at rest where the motion
+            starts or where it ends, whichever is less stable (a run through an unstable
+            stretch between is judged by its error).
         travel_m: the drive's travel (m, static; ±∞ for a StateSpace plant), for the
             out-of-travel message.
+        unstable_at_m: for the moving table, the position of that loop at rest (m); None
+            otherwise (the loop is the one at Y₀).
     """
 
     t: Float[Array, "*batch n"]
@@ -79,6 +84,7 @@ class Simulation(eqx.Module):
     failed_at: Int[Array, "*batch"]
     growth_rate: Float[Array, "*batch"] | None
     travel_m: tuple[float, float] = eqx.field(static=True, default=(-math.inf, math.inf))
+    unstable_at_m: Float[Array, "*batch"] | None = None
 
     def rms_error(self, which: str = "scale") -> Float[Array, "*batch"]:
         """RMS tracking error (m) over the run: ``"scale"`` (r − x2) or ``"tool"`` (r − x3)."""
@@ -109,9 +115,11 @@ class Simulation(eqx.Module):
                 lines.append(f"simulation ok at table position {y0:.4g} m")
             elif name == "unstable":
                 g = np.atleast_1d(np.asarray(self.growth_rate))[i]
-                lines.append(
-                    f"closed loop unstable at table position {y0:.4g} m: growing at {g:.4g} 1/s"
-                )
+                at = y0 if self.unstable_at_m is None else np.atleast_1d(
+                    np.asarray(self.unstable_at_m))[i]
+                rest = "" if self.unstable_at_m is None else " (the loop at rest there)"
+                lines.append(f"closed loop unstable at table position {at:.4g} m{rest}: "
+                             f"growing at {g:.4g} 1/s")
             elif name == "out_of_travel":
                 far = pos[i, np.argmax(np.maximum(pos[i] - hi, lo - pos[i]))]
                 lines.append(
@@ -328,7 +336,8 @@ def _with_pole(sim, controller, plant, method, servo, pos0, twin) -> str:
     msg = sim.message
     if not bool(np.any(np.asarray(sim.result == RESULTS.unstable))) or np.ndim(sim.failed_at):
         return msg
-    model = plant if pos0 is None else state_space(plant, pos0, twin=twin)
+    at = pos0 if sim.unstable_at_m is None else float(sim.unstable_at_m)  # moving: rest's
+    model = plant if pos0 is None else state_space(plant, at, twin=twin)
     A = np.asarray(method.closed_loop(controller, model, servo).A)
     lam = np.asarray(method.poles_to_s(jnp.asarray(np.linalg.eigvals(A)), servo))
     pole = lam[np.argmax(lam.real)]
@@ -342,6 +351,7 @@ def _simulate_impl(
     t = jnp.arange(n, dtype=jnp.float64) * dt
     r, v, a = (jnp.asarray(x, jnp.float64) for x in reference.evaluate(t)[:3])
     W = jnp.stack([r, v, a, force], 1)
+    unstable_at = None
     if pos0 is None:  # a StateSpace plant
         Y, failed_at, result, growth = method.run(controller, plant, W, servo, bound)
         pos = plant.position_m + r
@@ -359,11 +369,20 @@ def _simulate_impl(
             Y, failed_at, result = method.run_moving(
                 controller, moving_plant, W, clip(pos), clip(mid), servo, bound
             )
-            growth = None
+            # the loop at rest where the motion starts and where it ends: unstable there, the
+            # run is (a run passing through an unstable stretch is judged by its error)
+            ends = jnp.stack([pos0, clip(pos[-1])])
+            g_ends = jax.vmap(lambda y: method.frozen_growth(
+                controller, state_space(plant, y, twin=twin), servo))(ends)
+            worst = jnp.argmax(g_ends)
+            growth, unstable_at = g_ends[worst], ends[worst]
+            result = RESULTS.where((growth >= 0) & (result == RESULTS.successful),
+                                   RESULTS.unstable, result)
         else:
             outside = ~jnp.all((pos >= lo) & (pos <= hi))
             model = state_space(plant, pos0, twin=twin)
             Y, failed_at, result, growth = method.run(controller, model, W, servo, bound)
+            unstable_at = None
     result = RESULTS.where(outside, RESULTS.out_of_travel, result)
     return Simulation(
         t=t,
@@ -380,6 +399,7 @@ def _simulate_impl(
         failed_at=failed_at,
         growth_rate=growth,
         travel_m=travel,
+        unstable_at_m=unstable_at,
     )
 
 
