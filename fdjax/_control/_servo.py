@@ -73,8 +73,15 @@ class Servo(eqx.Module):
 
     def __check_init__(self):
         p = self.period
-        if isinstance(p, bool) or not isinstance(p, int | float) or not 0 < p < 1:
-            raise ValueError(f"`Servo(period=...)` must be a number in (0, 1) s, got {p!r}")
+        if isinstance(p, bool) or not isinstance(p, int | float) or not 0 < p <= 0.01:
+            hint = ""  # the units a wrong value was likely given in
+            if isinstance(p, int | float) and not isinstance(p, bool) and p >= 1:
+                hint = (f"; if {p:g} is a rate in Hz, the period is {1 / p:.6g} s; if it is "
+                        f"in µs, {p * 1e-6:.6g} s")
+            elif isinstance(p, int | float) and not isinstance(p, bool) and 0.01 < p < 1:
+                hint = f"; if {p:g} is in ms, the period is {p * 1e-3:.6g} s"
+            raise ValueError(f"`Servo(period=...)` must be a number in (0, 0.01] s (a servo's "
+                             f"sampling period), got {p!r}{hint}")
         _checks.static_int(self.delay_samples, "Servo(delay_samples=...)", 1, 64)
         _checks.static_number(self.current_limit, "Servo(current_limit=...)", lambda v: v > 0,
                               "finite and positive (A)")

@@ -174,13 +174,20 @@ class AbstractFilter(eqx.Module):
         Every ω_k must lie below the Nyquist frequency, ω_k dt < π. See ``DiscreteFilter`` for
         the structure.
         """
+        return self._discretize(dt, method, "discretize", "dt")
+
+    def _discretize(self, dt, method, fn, arg) -> DiscreteFilter:
+        """:meth:`discretize`, its errors naming the method ``fn`` and its argument ``arg``."""
         name = type(self).__name__
-        where = f"{name}.discretize(dt=...)"
+        where = f"{name}.{fn}({arg}=...)"
         if method not in ("fitted", "tustin"):
             raise ValueError(
-                f"`{name}.discretize(method=...)` must be 'fitted' or 'tustin', got {method!r}"
+                f"`{name}.{fn}(method=...)` must be 'fitted' or 'tustin', got {method!r}"
             )
         dt = positive(real_scalar(dt, where), where)
+        rate = ""  # a rate given for the period: the period it likely meant
+        if is_concrete(dt) and float(dt) >= 1:
+            rate = f"; a period in seconds: if {float(dt):g} is a rate in Hz, {1 / float(dt):.6g} s"
         (pn, pd, pw), (sn, sd, sw) = self._banks()
         w0 = jnp.concatenate([pw, sw])
         if w0.shape[0] > 0:
@@ -192,7 +199,7 @@ class AbstractFilter(eqx.Module):
                     where,
                     f"below π/ω_max = {math.pi / w_max:.6g} s so that every filter frequency "
                     f"(up to {w_max / (2 * math.pi):.6g} Hz) lies below the Nyquist frequency "
-                    "(ω·dt < π)",
+                    f"(ω·dt < π){rate}",
                 )
             else:
                 dt = eqx.error_if(
@@ -226,7 +233,7 @@ class AbstractFilter(eqx.Module):
         standard biquads, rows [b0, b1, b2, 1, a1, a2] in ``scipy.signal.sosfilt``'s convention
         (a new, writable float64 NumPy array), equal to what the sampled loop runs:
         ``self.discretize(period, method).to_sos()`` (see :meth:`DiscreteFilter.to_sos`)."""
-        return self.discretize(period, method).to_sos()
+        return self._discretize(period, method, "to_sos", "period").to_sos()
 
 class PeakFilter(AbstractFilter):
     r"""Peak filter(s), paper Eq. (3) (as corrected below):
