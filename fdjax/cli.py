@@ -750,6 +750,22 @@ def main(argv=None) -> int:
     parser = _parser()
     argv = sys.argv[1:] if argv is None else list(argv)
     word = next((a for a in argv if not a.startswith("-")), None)
+    lead = argv if word is None else argv[:argv.index(word)]
+    stray = [a for a in lead if a.startswith("-") and a.split("=")[0] not in
+             ("-h", "--help", "--version")]
+    if stray:  # an option before the command: a typo of --version, or a command's option
+        import difflib
+
+        opt = stray[0].split("=")[0]
+        owners = [c for c in COMMANDS if any(opt in a.option_strings for a in
+                                              _subparser(parser, c)._actions)]
+        close = difflib.get_close_matches(opt, ["--help", "--version"], n=1)
+        hint = (f"; it is an option of {', '.join(owners)}: give it after the command, e.g. "
+                f"'fdjax {owners[0]} {stray[0]} ...'" if owners else
+                f"; did you mean {close[0]!r}?" if close else
+                "; before a command fdjax takes --help and --version only")
+        parser.error(f"unknown option {stray[0]!r} before the command{hint} (commands: "
+                     f"{', '.join(COMMANDS)})")
     if word is not None and word not in COMMANDS and not any(a in ("-h", "--help", "--version")
                                                              for a in argv[:argv.index(word)]):
         import difflib

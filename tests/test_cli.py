@@ -186,10 +186,19 @@ def test_modes_writes_table(tmp_path, capsys):
         (["tune", "--steps", "10"], "unrecognized arguments: --steps 10 (options of 'tune': "
                                     "--out, --quick)"),
         (["demo", "--quick"], "unrecognized arguments: --quick (options of 'demo': --out)"),
+        # before the command: a typo of --version, a command's option, anything else
+        (["--versoin"], "unknown option '--versoin' before the command; did you mean "
+                        "'--version'?"),
+        (["--out", "x", "demo"], "unknown option '--out' before the command; it is an option "
+                                 "of reproduce, demo, figures, modes, tune: give it after the "
+                                 "command, e.g. 'fdjax reproduce --out ...'"),
+        (["-v"], "unknown option '-v' before the command; before a command fdjax takes --help "
+                 "and --version only"),
     ],
     ids=["typo", "typo-figures", "unknown-command", "bad-option", "abbreviation", "bad-choice",
          "positions-in-mm", "positions-in-m", "positions-too-few", "n-modes-zero", "no-command",
-         "typo-tune", "tune-bad-option", "demo-is-quick"],
+         "typo-tune", "tune-bad-option", "demo-is-quick", "version-typo", "option-first",
+         "unknown-short"],
 )
 def test_argument_errors(argv, message, capsys):
     with pytest.raises(SystemExit) as exc:
