@@ -176,9 +176,10 @@ def test_modes_writes_table(tmp_path, capsys):
         # --positions is a count: a position typed in mm (or m) says so
         (["modes", "--positions", "115mm"],
          "argument --positions: expected the number of table positions spread over the travel "
-         "(a count, not a position in m or mm), an integer ≥ 2; got '115mm'"),
+         "(a count, not a position in m or mm), an integer ≥ 2 and ≤ 601; got '115mm'"),
         (["modes", "--positions", "0.115"], "a count, not a position in m or mm"),
-        (["modes", "--positions", "1"], "an integer ≥ 2; got '1'"),
+        (["modes", "--positions", "1"], "an integer ≥ 2 and ≤ 601; got '1'"),
+        (["modes", "--positions", "1000000"], "an integer ≥ 2 and ≤ 601; got '1000000'"),
         (["modes", "--n-modes", "0"],
          "argument --n-modes: expected the number of modes, an integer ≥ 1; got '0'"),
         ([], "the following arguments are required: {reproduce,demo,figures,modes,tune}"),
@@ -196,7 +197,8 @@ def test_modes_writes_table(tmp_path, capsys):
                  "and --version only"),
     ],
     ids=["typo", "typo-figures", "unknown-command", "bad-option", "abbreviation", "bad-choice",
-         "positions-in-mm", "positions-in-m", "positions-too-few", "n-modes-zero", "no-command",
+         "positions-in-mm", "positions-in-m", "positions-too-few", "positions-too-many",
+         "n-modes-zero", "no-command",
          "typo-tune", "tune-bad-option", "demo-is-quick", "version-typo", "option-first",
          "unknown-short"],
 )
