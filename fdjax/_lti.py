@@ -71,13 +71,29 @@ class LTI(eqx.Module):
         """Whether the system is discrete (it has a sample period ``dt``)."""
         return self.dt is not None
 
+    def _one(self, fn: str) -> None:
+        if self.A.ndim != 2:
+            raise ValueError(f"`LTI.{fn}` needs one system (A of shape (n, n)), got a batch (A "
+                             f"of shape {self.A.shape}): jax.vmap it over the systems")
+
     def transfer(self, x: Inexact[ArrayLike, "*shape"]) -> Complex[Array, "*shape p m"]:
-        """C (xI − A)⁻¹ B + D at complex ``x`` of any shape (x = s, or z for a discrete system)."""
+        """C (xI − A)⁻¹ B + D at complex ``x`` of any shape (x = s, or z for a discrete system);
+        one system (``jax.vmap`` over a batch)."""
+        self._one("transfer")
         return transfer(self.A, self.B, self.C, self.D, x)
 
     def frf(self, freq_hz: Float[ArrayLike, " freq"]) -> Complex[Array, "freq p m"]:
-        """Frequency response at ``freq_hz`` (Hz): s = i2πf, or z = e^{i2πfT} when discrete."""
-        f = _checks.frequency_grid(freq_hz, "LTI.frf(freq_hz=...)")
+        """Frequency response at ``freq_hz`` (Hz): s = i2πf, or z = e^{i2πfT} when discrete,
+        then up to the Nyquist frequency 1/(2T) (above it the response aliases)."""
+        where = "LTI.frf(freq_hz=...)"
+        self._one("frf")
+        f = _checks.frequency_grid(freq_hz, where)
+        if self.dt is not None and _checks.is_concrete(self.dt):
+            top = 0.5 / float(self.dt)
+            hint = f" ({top * _TWO_PI:.6g} rad/s: the grid is in Hz)"
+            f = _checks.check(f, lambda v: v <= top * (1 + 1e-12), where,
+                              f"at most the Nyquist frequency {top:.6g} Hz of the sample period "
+                              f"{float(self.dt):.6g} s{hint}")
         return self.transfer(self.unit_circle_or_axis(_TWO_PI * f))
 
     def unit_circle_or_axis(self, omega) -> Complex[Array, "*shape"]:

@@ -103,7 +103,17 @@ class LumpedModel(eqx.Module):
     def frf(self, freq_hz: Float[ArrayLike, " freq"]) -> Complex[Array, "freq n n"]:
         """Receptance matrix ``H[f, i, j] = x_i / F_j`` (m/N) on a frequency grid in Hz."""
         freq_hz = _checks.frequency_grid(freq_hz, "LumpedModel.frf(freq_hz=...)")
-        upper, finite = _frf_upper(self, freq_hz)
+        model = self
+        if not all(_checks.is_concrete(getattr(self, k)) for k in ("stiffness", "damping")):
+            # traced matrices (checked where concrete, in __check_init__): the mirrored upper
+            # triangle below is the receptance of a symmetric model only
+            for name in ("stiffness", "damping"):
+                a = getattr(model, name)
+                bad = jnp.max(jnp.abs(a - a.T)) > 1e-12 * jnp.max(jnp.abs(a))
+                model = eqx.tree_at(lambda m, name=name: getattr(m, name), model, eqx.error_if(
+                    a, bad, f"`LumpedModel({name}=...)` must be symmetric (a reciprocal "
+                    "structure)"))
+        upper, finite = _frf_upper(model, freq_hz)
         H = _mirror(upper, self.size)
         if _checks.is_concrete(finite):
             if not bool(finite):

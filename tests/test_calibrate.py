@@ -82,6 +82,24 @@ def test_update_model_bad_input(drive):
         update_model(drive, data, {"nut.stifness": (1e8, 1e9)}, 0.2)
     with pytest.raises(ValueError, match=r"lo < hi"):
         update_model(drive, data, {"nut.stiffness": (1e9, 1e8)}, 0.2)
+    # bounds outside what the drive may be: through the parameter's own constructor
+    with pytest.raises(ValueError, match=r"`update_model\(parameters=\.\.\.\)` bound -2e\+09 for "
+                                         r"'nut\.stiffness' is not a value the drive may take: "
+                                         r"`NutJoint\(stiffness=\.\.\.\)` must be finite and "
+                                         r"positive"):
+        update_model(drive, data, {"nut.stiffness": (-2e9, -1e9)}, 0.2)
+    with pytest.raises(ValueError, match=r"bound 0\.07 for 'screw\.bore_diameter' is not a value "
+                                         r"the drive may take: `Screw\(bore_diameter=\.\.\.\)` "
+                                         r"must be smaller than the diameter"):
+        update_model(drive, data, {"screw.bore_diameter": (0.01, 0.07)}, 0.2)
+    # more modes than the drive has oscillatory poles (an overdamped pitch mode, a coarse
+    # mesh): refused, not filled with duplicates
+    stiff = eqx.tree_at(lambda d: d.carriage.pitch_damping, drive,
+                        jnp.asarray(1e6, jnp.float64))
+    with pytest.raises(eqx.EquinoxRuntimeError, match=r"`drive_modes\(n_modes=\.\.\.\)` asks "
+                                                      r"for more modes than the drive has "
+                                                      r"oscillatory poles"):
+        drive_modes(stiff, 0.3, n_modes=12, twin=fdjax.TwinOptions(n_elements=4))
     with pytest.raises(ValueError, match=r"drive_modes\(position_m=\.\.\.\)` must be inside the "
                                          r"travel \[0.1, 0.7\] m, got 0.9 at index 1"):
         drive_modes(drive, [0.2, 0.9], n_modes=2)

@@ -147,3 +147,28 @@ def test_hessenberg_frequency_response_matches_numpy_on_the_sampled_plant():
 
     d_h, d_dense = np.asarray(dG(transfer_hessenberg)), np.asarray(dG(transfer))
     assert np.max(np.abs(d_h - d_dense)) <= 1e-9 * np.max(np.abs(d_dense))
+
+
+def test_frf_of_one_system_below_its_nyquist_frequency():
+    """LTI.frf takes one system (a batch is named, with what to do) and, for a discrete one,
+    frequencies up to its Nyquist frequency: above it z = e^{i2πfT} aliases (1100 Hz at
+    T = 1 ms is 100 Hz), which a grid given in rad/s would do silently."""
+    from fdjax._lti import LTI
+
+    one = LTI(jnp.array([[0.5]]), jnp.array([[1.0]]), jnp.array([[1.0]]), jnp.array([[0.0]]),
+              dt=jnp.asarray(1e-3))
+    f = np.array([100.0, 500.0])
+    z = np.exp(2j * np.pi * f * 1e-3)
+    np.testing.assert_allclose(np.asarray(one.frf(f))[:, 0, 0], 1 / (z - 0.5), rtol=1e-14)
+    with pytest.raises(ValueError, match=r"`LTI\.frf\(freq_hz=\.\.\.\)` must be at most the "
+                                         r"Nyquist frequency 500 Hz of the sample period 0\.001 s "
+                                         r"\(3141\.59 rad/s: the grid is in Hz\), got 1100"):
+        one.frf(np.array([100.0, 1100.0]))
+    batch = LTI(*(jnp.ones((2, 1, 1)) for _ in range(4)))
+    for call in (lambda: batch.frf(f), lambda: batch.transfer(1j)):
+        with pytest.raises(ValueError, match=r"needs one system \(A of shape \(n, n\)\), got a "
+                                             r"batch \(A of shape \(2, 1, 1\)\): jax\.vmap"):
+            call()
+    # vmapped, each system is one
+    out = jax.vmap(lambda s: s.transfer(jnp.asarray(2.0 + 0j)))(batch)
+    np.testing.assert_allclose(np.asarray(out)[:, 0, 0], [2.0, 2.0], rtol=1e-15)

@@ -4,9 +4,11 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 import scipy.linalg
 
 import fdjax
+from fdjax import LumpedModel
 
 
 def _numpy_frf(model, freq_hz):
@@ -99,3 +101,19 @@ def test_frf_does_not_retrace():
     w = jnp.linspace(1.0, 2.0, 8)
     f(model, w)
     f(eqx.tree_at(lambda m: m.stiffness, model, model.stiffness * 1.1), w * 2)
+
+
+def test_a_non_symmetric_matrix_is_refused_under_jit_too():
+    """The FRF mirrors its upper triangle (reciprocity): a non-symmetric stiffness built inside
+    jit, where the constructor cannot see its values, is refused there, not answered with the
+    receptance of another model (a third of the true h21 here)."""
+    M = np.eye(2)
+    K = np.array([[2e4, -1e4], [-3e4, 3e4]])
+    C = 0.01 * np.array([[2e4, -1e4], [-1e4, 3e4]])  # symmetric
+    f = np.array([10.0, 20.0])
+    run = eqx.filter_jit(lambda k: LumpedModel(M, k, C).frf(f))
+    with pytest.raises(eqx.EquinoxRuntimeError, match=r"`LumpedModel\(stiffness=\.\.\.\)` must be "
+                                                      r"symmetric"):
+        jax.block_until_ready(run(K))
+    Ks = np.array([[2e4, -1e4], [-1e4, 3e4]])
+    np.testing.assert_allclose(run(Ks), LumpedModel(M, Ks, C).frf(f), rtol=1e-14)

@@ -142,6 +142,15 @@ def test_warm_start(fits, table1):
     np.testing.assert_allclose(warm.frequency_hz, noisy_fit.frequency_hz, rtol=1e-9)
     np.testing.assert_allclose(warm.damping_ratio, noisy_fit.damping_ratio, rtol=1e-7)
     np.testing.assert_allclose(warm.residues, noisy_fit.residues, rtol=1e-6)
+    # without n_modes the fit's own order is refined (it used to run the stabilisation
+    # diagram and never read initial): the same program, the same numbers
+    same = identify_modes(FREQ, noisy(table1["h"], 0), initial=clean)
+    np.testing.assert_array_equal(same.frequency_hz, warm.frequency_hz)
+    # a fit whose poles are not finite is refused, named
+    nan = eqx.tree_at(lambda m: m.poles, clean, clean.poles * np.nan)
+    with pytest.raises(ValueError, match=r"`identify_modes\(initial=\.\.\.\)` must be a fit with "
+                                         r"finite poles"):
+        identify_modes(FREQ, noisy(table1["h"], 0), 5, initial=nan)
 
 
 def test_vector_fitting_stage_alone(fits, table1):

@@ -291,7 +291,7 @@ def test_bad_input_messages(plant, reference):
                              r"ust be an integer between 1 and 64"):
         fdjax.Servo(delay_samples=2.5)
     with pytest.raises(ValueError,
-                       match=r"`Servo\(period=\.\.\.\)` must be a number in \(0, 1\) s"):
+                       match=r"`Servo\(period=\.\.\.\)` must be a number in \(0, 0\.01\] s"):
         fdjax.Servo(period=-1.0)
     with pytest.raises(ValueError,
                        match=r"SampledData\(filter_method=...\)` must be 'fitted' or"):

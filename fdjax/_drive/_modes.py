@@ -77,6 +77,12 @@ def _modes_from_fe(fe, out: int, inp: int, n_keep: int) -> DriveModes:
     # the lowest oscillatory poles in the upper half-plane (rigid-body and overdamped poles
     # are real and excluded)
     oscillatory = jnp.imag(lam) > 1e-6 * jnp.max(jnp.abs(lam))
+    # fewer oscillatory poles than asked for (overdamped modes): the sort below would pick
+    # real or lower-half-plane poles as modes
+    lam = eqx.error_if(lam, jnp.sum(oscillatory) < n_keep,
+                       "`drive_modes(n_modes=...)` asks for more modes than the drive has "
+                       "oscillatory poles at this position (some modes are overdamped): ask for "
+                       "fewer")
     keep = jnp.argsort(jnp.where(oscillatory, jnp.abs(lam), jnp.inf))[:n_keep]
     lam, V, W = lam[keep], V[:, keep], W[keep, :]
     Cc, Bc = C.astype(jnp.complex128), B.astype(jnp.complex128)

@@ -14,6 +14,7 @@ visible model mode (greedy, in target order; a mode is visible when its own term
 
 from __future__ import annotations
 
+import dataclasses
 import operator
 from collections.abc import Mapping
 
@@ -324,6 +325,16 @@ def update_model(
                 f"`{fn}(parameters=...)` bounds for {p!r} must be finite with lo < hi, "
                 f"got ({lo}, {hi})"
             )
+        # each bound through the parameter's own constructor, so that the fit cannot leave
+        # what a drive may be (a negative stiffness, a bore wider than the screw)
+        parent_path, _, leaf = p.rpartition(".")
+        parent = _getter(parent_path)(drive) if parent_path else drive
+        for v in (lo, hi):
+            try:
+                dataclasses.replace(parent, **{leaf: v})
+            except (TypeError, ValueError) as err:
+                raise ValueError(f"`{fn}(parameters=...)` bound {v:g} for {p!r} is not a value "
+                                 f"the drive may take: {err}") from None
         bounds.append((lo, hi))
     tol = np.asarray(tolerances, dtype=np.float64) if np.ndim(tolerances) == 1 else None
     if tol is None or tol.shape != (3,):

@@ -223,7 +223,8 @@ def identify_modes(
     - ``weights``: positive weights :math:`w`, broadcastable to ``frf``; default
       :math:`1/|H|` (relative error).
     - ``initial``: a previous ``ModalFit`` (e.g. the neighbouring position) whose poles start
-      the refinement instead of vector fitting; or a :class:`StabilisationDiagram` of the
+      the refinement instead of vector fitting (with ``n_modes`` None, its order and real
+      poles are the fit's); or a :class:`StabilisationDiagram` of the
       same data (from :func:`stabilisation_diagram`, with its own tolerances), whose
       selected poles start it (then ``n_modes`` is None).
     - ``max_modes``: without ``n_modes``, the highest order (pole pairs) of the diagram
@@ -258,10 +259,21 @@ def identify_modes(
     reasonable measurement never ends in a solver error. Eager (the order is a discrete
     choice on concrete data): not inside ``jit``; there, start from an eager fit, e.g.
     ``fit = identify_modes(f, H)`` and then, jitted, vmapped or differentiated,
-    ``identify_modes(f, H2, fit.n_modes, real_poles=fit.real_poles.shape[0], initial=fit)``.
+    ``identify_modes(f, H2, initial=fit)`` (the fit's order and real poles).
 
     **Returns:** a :class:`ModalFit`.
     """
+    if isinstance(initial, ModalFit):
+        for name in ("poles", "real_poles"):
+            v = getattr(initial, name)
+            if is_concrete(v) and not np.all(np.isfinite(np.asarray(v))):
+                raise ValueError(f"`identify_modes(initial=...)` must be a fit with finite "
+                                 f"poles, got {name} {np.asarray(v)}")
+    if n_modes is None and isinstance(initial, ModalFit):
+        # refining a fit: its order (and its real poles, unless given) is the one to refine
+        n_modes = int(initial.poles.shape[-1])
+        if real_poles is None:
+            real_poles = int(initial.real_poles.shape[-1])
     if n_modes is None or isinstance(initial, StabilisationDiagram):
         if not all(is_concrete(x) for x in (freq_hz, frf, weights) if x is not None):
             raise ValueError(
