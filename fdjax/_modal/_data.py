@@ -68,6 +68,11 @@ def _check_inputs(where, n_batch, freq_hz, frf, n_modes, rigid_body, upper_resid
             at = f"(position, channel) {idx}" if n_batch else f"channel {idx[0]}"
             raise ValueError(f"`{where}(frf=...)` must not have a channel that is zero at every "
                              f"frequency, got one at {at} (flattened output × input index)")
+    else:  # traced (jit, vmap): the same check, in the program
+        flat = jnp.abs(frf).reshape(frf.shape[:n_batch + 1] + (-1,))
+        frf = eqx.error_if(frf, jnp.any(jnp.all(flat == 0, axis=n_batch)),
+                           f"`{where}(frf=...)` must not have a channel that is zero at every "
+                           "frequency")
     rigid_body = static_int(rigid_body, f"{where}(rigid_body=...)", 0, 2)
     if not isinstance(upper_residual, bool):
         raise TypeError(f"`{where}(upper_residual=...)` must be a bool, got {upper_residual!r}")
