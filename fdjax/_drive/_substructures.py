@@ -134,9 +134,6 @@ class Screw(eqx.Module):
         """``(GJ, ρJ, EA, ρA)`` of the (hollow) circular section:
         J = π(d⁴ − d_i⁴)/32, A = π(d² − d_i²)/4."""
         d, di = self.diameter, self.bore_diameter
-        if not (_checks.is_concrete(d) and _checks.is_concrete(di)):  # checked when built
-            d = eqx.error_if(d, di >= d, "`Screw(bore_diameter=...)` must be smaller than the "
-                             "diameter")
         area = jnp.pi * (d**2 - di**2) / 4
         polar = jnp.pi * (d**4 - di**4) / 32
         return (self.shear_modulus * polar, self.density * polar,
