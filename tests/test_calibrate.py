@@ -137,7 +137,12 @@ def identified(drive):
                                      max_steps=1000, throw=False)
         for i, e in FIT_STARTS
     ]
-    best = np.argmin(np.stack([np.asarray(f.fit_error) for f in fits]), axis=0)
+    # a start that ends on a degenerate model (non-finite fit, reported by its result) is
+    # not the best
+    err = np.stack([np.asarray(f.fit_error) for f in fits])
+    best = np.argmin(np.where(np.isfinite(err), err, np.inf), axis=0)
+    for f, e in zip(fits, err):  # a non-finite fit is never reported as a success
+        assert np.all(np.isfinite(e) | np.asarray(f.result != optx.RESULTS.successful))
 
     def pick(*xs):  # per position, that position's entry of the best start's fit
         return jnp.stack([xs[b][p] for p, b in enumerate(best)])

@@ -143,6 +143,12 @@ def _finish(s, h, w, h_scale, omega_ref, p0, solver, model: _Model, refine: bool
     wh2 = jnp.sum((w * jnp.abs(h)) ** 2, axis=0)
     res2 = jnp.sum(res**2, axis=1)
     ch = model.channel_shape
+    # a refinement that ends on a degenerate model (e.g. a spare pole on the real axis, whose
+    # residues are not defined) gives a non-finite fit: reported as such, never as a success
+    total = jnp.sqrt(jnp.sum(res2) / jnp.sum(wh2))
+    result = optx.RESULTS.where(jnp.isfinite(total), result, optx.RESULTS.nonfinite)
+    if throw:
+        total = result.error_if(total, result != optx.RESULTS.successful)
     return ModalFit(
         frequency_hz=wn / _TWO_PI,
         damping_ratio=zeta,
@@ -154,7 +160,7 @@ def _finish(s, h, w, h_scale, omega_ref, p0, solver, model: _Model, refine: bool
         rigid_body=rigid.reshape(2, *ch),
         upper_residual=upper.reshape(ch),
         fit_error=jnp.sqrt(res2 / wh2).reshape(ch),
-        fit_error_total=jnp.sqrt(jnp.sum(res2) / jnp.sum(wh2)),
+        fit_error_total=total,
         num_steps=jnp.asarray(num_steps),
         result=result,
     )
