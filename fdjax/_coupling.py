@@ -90,6 +90,13 @@ def couple(
     Be = [[Bc[k, i] for i in range(B.shape[1])] for k in range(m)]
     if _checks.is_concrete(B):  # exact zeros of a concrete B are structural
         Bn = np.asarray(B)
+        # each row a constraint, none repeating another: B B^T must be invertible
+        if np.linalg.matrix_rank(Bn) < m:
+            raise ValueError(
+                f"`couple(interface=...)` must have independent rows (each a compatibility "
+                f"constraint between DOFs), got rank {np.linalg.matrix_rank(Bn)} for {m} rows: "
+                "a zero or repeated row"
+            )
         Be = [[0 if Bn[k, i] == 0 else Be[k][i] for i in range(B.shape[1])] for k in range(m)]
     Je = None
     if joint is not None:

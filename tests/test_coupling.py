@@ -72,3 +72,17 @@ def test_three_mass_by_coupling_two_substructures():
     Yc = np.asarray(fdjax.couple(jnp.asarray(Y), np.array([[-1.0, 1.0, 0.0]]), jnp.asarray(joint)))
     ref = np.asarray(fdjax.three_mass().receptance(w))
     np.testing.assert_allclose(Yc, ref, rtol=1e-9)
+
+
+def test_an_interface_with_a_zero_or_repeated_row_is_named():
+    """Each row of B is one compatibility constraint: a zero row or a repeated one leaves
+    B Y Bᵀ singular (a bare ZeroDivisionError, or "non-finite result, check the parameters")."""
+    import pytest
+
+    Y = np.eye(3)[None] * (1e-6 + 0j)
+    for B in (np.array([[1.0, -1.0, 0.0], [0.0, 0.0, 0.0]]),
+              np.array([[1.0, -1.0, 0.0], [1.0, -1.0, 0.0]])):
+        with pytest.raises(ValueError, match=r"`couple\(interface=\.\.\.\)` must have "
+                                             r"independent rows .* got rank 1 for 2 rows"):
+            fdjax.couple(Y, B)
+    assert fdjax.couple(Y, np.array([[1.0, -1.0, 0.0]])).shape == (1, 3, 3)

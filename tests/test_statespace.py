@@ -396,8 +396,8 @@ def test_bad_input():
                                          r"at least 1, got 2\.5"):
         TwinOptions(n_elements=2.5)
     with pytest.raises(ValueError, match=r"`TwinOptions\(kept_modes=\.\.\.\)` must be an integer "
-                                         r"between 1 and 29, got 30"):
-        TwinOptions(kept_modes=30)
+                                         r"between 1 and 30, got 31"):
+        TwinOptions(kept_modes=31)  # 2·12 + 6 DOFs with a table
     with pytest.raises(ValueError, match=r"`count_modes\(band_hz=\.\.\.\)` must be finite and"):
         count_modes(drive, -1.0)
     with pytest.raises(ValueError, match=r"`TwinOptions\(band_hz=\.\.\.\)` must be finite and"):

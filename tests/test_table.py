@@ -247,3 +247,19 @@ def test_bad_input():
     with pytest.raises(CHECK_FAILED,
                        match=r"`Table\(mass=\.\.\.\)` must be finite and positive"):
         jax.block_until_ready(jax.jit(lambda m: fdjax.Table(mass=m, stiffness=K_T).mass)(-1.0))
+
+
+def test_a_table_drive_keeps_all_of_its_modes(drive, plain):
+    """With a table the mesh has 2·n + 6 DOFs, one more than without: the twin can keep all of
+    them (the options' cap was the plain drive's 2·n + 5), and one more is refused for the
+    drive it is asked of; drive_modes reaches its 2·n + 5 pairs."""
+    full = fdjax.TwinOptions(n_elements=4, kept_modes=14)
+    assert fdjax.state_space(drive, 0.3, twin=full).A.shape == (28, 28)
+    with pytest.raises(ValueError, match=r"`state_space\(twin=\.\.\.\)` keeps 14 modes, more "
+                                         r"than the 13 DOFs of this drive's mesh"):
+        fdjax.state_space(plain, 0.3, twin=full)
+    m = fdjax.drive_modes(drive, 0.3, n_modes=13, twin=fdjax.TwinOptions(n_elements=4))
+    assert np.all(np.diff(np.asarray(m.frequency_hz)) > 0)  # 13 distinct modes
+    with pytest.raises(ValueError, match=r"`drive_modes\(n_modes=\.\.\.\)` must be an integer "
+                                         r"between 1 and 12"):
+        fdjax.drive_modes(plain, 0.3, n_modes=13, twin=fdjax.TwinOptions(n_elements=4))

@@ -134,9 +134,10 @@ def drive_modes(
     inp = _channel(input, INPUTS, fn, "input")
     twin = _twin_options(twin, fn)
     n_el = int(twin.n_elements)
-    # at most N − 1 oscillatory pole pairs for N = 2·n_elements + 5 DOFs (the rigid body
-    # gives two real poles)
-    n_keep = _checks.static_int(n_modes, f"{fn}(n_modes=...)", 1, 2 * n_el + 4)
+    # at most N − 1 oscillatory pole pairs for N = 2·n_elements + 3 + the carriage's DOFs (2,
+    # or 3 with a table; the rigid body gives two real poles)
+    car = drive.carriage.n_dofs if isinstance(drive, BallScrewDrive) else 2  # (named below)
+    n_keep = _checks.static_int(n_modes, f"{fn}(n_modes=...)", 1, 2 * n_el + 2 + int(car))
     pos = _checks.real_array(position_m, f"{fn}(position_m=...)")
     if pos.ndim == 0:
         drive, pos = _check_inputs(drive, pos, fn)

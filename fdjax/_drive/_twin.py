@@ -155,8 +155,10 @@ class TwinOptions(eqx.Module):
     def __check_init__(self):
         _checks.static_int(self.n_elements, "TwinOptions(n_elements=...)", 1)
         if self.kept_modes is not None:
+            # N = 2·n_elements + 5 DOFs, one more with a table (checked against the drive in
+            # modes_for)
             _checks.static_int(self.kept_modes, "TwinOptions(kept_modes=...)", 1,
-                               2 * int(self.n_elements) + 5)
+                               2 * int(self.n_elements) + 6)
         band = _checks.concrete_float(self.band_hz, "TwinOptions(band_hz=...)")
         _checks.positive(band, "TwinOptions(band_hz=...)")
         _checks.static_bool(self.residual, "TwinOptions(residual=...)")
@@ -165,6 +167,11 @@ class TwinOptions(eqx.Module):
     def modes_for(self, drive: BallScrewDrive, fn: str = "state_space") -> int:
         """The number of kept modes for ``drive``: ``kept_modes``, or the band's count."""
         if self.kept_modes is not None:
+            n_dofs = 2 * int(self.n_elements) + 3 + int(drive.carriage.n_dofs)
+            if int(self.kept_modes) > n_dofs:
+                raise ValueError(f"`{fn}(twin=...)` keeps {int(self.kept_modes)} modes, more than "
+                                 f"the {n_dofs} DOFs of this drive's mesh "
+                                 f"(n_elements={int(self.n_elements)})")
             return int(self.kept_modes)
         return _count_modes(drive, self.band_hz, int(self.n_elements), 11,
                             bool(self.nut_correction), fn)
