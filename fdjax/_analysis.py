@@ -184,7 +184,7 @@ def _plant(plant, position_m, fn: str, *, twin=None, freq_hz=None, screw_ratio=N
         raise TypeError(f"`{fn}(plant=...)` must be a drive or a StateSpace, not an FRF array "
                         f"(shape {H.shape}): the closed loop's poles need a model")
     if H.ndim < 3 or H.shape[-2:] != (3, 2) or H.shape[-3] != freq_hz.shape[0]:
-        n = "n_freq" if freq_hz is None else f"n_freq = {freq_hz.shape[0]}"
+        n = f"n_freq = {freq_hz.shape[0]}"
         raise ValueError(
             f"`{fn}(plant=...)` must be a BallScrewDrive (with position_m), a StateSpace, or an "
             f"FRF array of shape (..., n_freq, 3, 2) with {n}, got "
@@ -591,11 +591,10 @@ def gain_headroom(
     rtol = _checks.static_number(rtol, f"{fn}(rtol=...)", lambda v: 0 < v <= 0.1,
                                  "a number in (0, 0.1]")
     # every argument checked here, named for the caller (the search calls check_stability)
-    _, _, _, kind, _, scalar, _ = _entry(fn, controller, plant, servo, method, position_m, twin)
-    if isinstance(plant, BallScrewDrive):
-        position_m = np.asarray(plant._check_travel(position_m, fn))
-        # the twin's modes counted once, not at every step of the search
-        twin = _twin_options(twin, fn).resolve(plant, fn)
+    _, _, _, kind, p, scalar, _ = _entry(fn, controller, plant, servo, method, position_m, twin)
+    if kind == "drive":
+        position_m = np.asarray(p[1])
+        twin = p[2]  # the twin's modes counted once, not at every step of the search
     pos = None if position_m is None else np.asarray(position_m, np.float64)
     k_m = servo.k_motor
     if kind == "model" and not scalar:  # a batch of twins: g for each, as for positions
