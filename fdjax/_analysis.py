@@ -593,7 +593,7 @@ def gain_headroom(
     # every argument checked here, named for the caller (the search calls check_stability)
     _, _, _, kind, p, scalar, _ = _entry(fn, controller, plant, servo, method, position_m, twin)
     if kind == "drive":
-        position_m = np.asarray(p[1])
+        position_m = np.asarray(plant._check_travel(position_m, fn))  # its own shape
         twin = p[2]  # the twin's modes counted once, not at every step of the search
     pos = None if position_m is None else np.asarray(position_m, np.float64)
     k_m = servo.k_motor
