@@ -232,14 +232,14 @@ def test_a_moving_run_that_rests_on_an_unstable_loop_is_unstable():
     # and 17.63 1/s)
     np.testing.assert_allclose(start.growth_rate, frozen.growth_rate, rtol=1e-3)
     assert "closed loop unstable at table position 0.6" in start.message
-    end = fdjax.simulate(ref, drive_, jerk_limited(0.25, 0.3, 2.0, 400.0), position_m=0.3, **kw)
+    move = jerk_limited(0.1, 0.3, 2.0, 400.0)  # 0.45 → 0.55 m in 0.49 s
+    end = fdjax.simulate(ref, drive_, move, position_m=0.45, **kw)
     assert end.result == fdjax.RESULTS.unstable and float(end.growth_rate) > 0
     np.testing.assert_allclose(end.unstable_at_m, 0.55, rtol=1e-12)
     assert "unstable at table position 0.55 m (the loop at rest there)" in end.message
     with pytest.raises(RuntimeError, match=r"unstable at table position 0\.55 m \(the loop at "
                                            r"rest there\): pole at .* Hz growing"):
-        fdjax.simulate(ref, drive_, jerk_limited(0.25, 0.3, 2.0, 400.0), position_m=0.3,
-                       moving=True, twin=kw["twin"])
+        fdjax.simulate(ref, drive_, move, position_m=0.45, moving=True, twin=kw["twin"])
     ok = fdjax.simulate(ref, drive_, jerk_limited(1e-4, 0.05, 2.0, 400.0), position_m=0.3,
                         duration=0.02, **kw)
     assert ok.result == fdjax.RESULTS.successful and float(ok.growth_rate) < 0
