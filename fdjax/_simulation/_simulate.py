@@ -372,8 +372,10 @@ def _simulate_impl(
             # the loop at rest where the motion starts and where it ends: unstable there, the
             # run is (a run passing through an unstable stretch is judged by its error)
             ends = jnp.stack([pos0, clip(pos[-1])])
+            # on the run's own basis (the plant the steps are built from, without the FE
+            # model's eigen-decomposition at each end)
             g_ends = jax.vmap(lambda y: method.frozen_growth(
-                controller, state_space(plant, y, twin=twin), servo))(ends)
+                controller, moving_plant.at(y), servo))(ends)
             worst = jnp.argmax(g_ends)
             growth, unstable_at = g_ends[worst], ends[worst]
             result = RESULTS.where((growth >= 0) & (result == RESULTS.successful),
