@@ -73,12 +73,13 @@ class Servo(eqx.Module):
 
     def __check_init__(self):
         p = self.period
-        if isinstance(p, bool) or not isinstance(p, int | float) or not 0 < p <= 0.01:
+        number = isinstance(p, int | float) and not isinstance(p, bool)
+        if not (number and 0 < p <= 0.01):
             hint = ""  # the units a wrong value was likely given in
-            if isinstance(p, int | float) and not isinstance(p, bool) and p >= 1:
+            if number and p >= 1:
                 hint = (f"; if {p:g} is a rate in Hz, the period is {1 / p:.6g} s; if it is "
                         f"in µs, {p * 1e-6:.6g} s")
-            elif isinstance(p, int | float) and not isinstance(p, bool) and 0.01 < p < 1:
+            elif number and 0.01 < p < 1:
                 hint = f"; if {p:g} is in ms, the period is {p * 1e-3:.6g} s"
             raise ValueError(f"`Servo(period=...)` must be a number in (0, 0.01] s (a servo's "
                              f"sampling period), got {p!r}{hint}")

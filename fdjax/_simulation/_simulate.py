@@ -384,7 +384,6 @@ def _simulate_impl(
             outside = ~jnp.all((pos >= lo) & (pos <= hi))
             model = state_space(plant, pos0, twin=twin)
             Y, failed_at, result, growth = method.run(controller, model, W, servo, bound)
-            unstable_at = None
     result = RESULTS.where(outside, RESULTS.out_of_travel, result)
     return Simulation(
         t=t,

@@ -28,7 +28,7 @@ import numpy as np
 from jaxtyping import ArrayLike, Float
 
 from .._analysis import check_stability, loop_margins, open_loop
-from .._checks import check, frequency_grid, instance, real_array, static_number
+from .._checks import instance, real_array, static_number
 from .._control._controllers import AbstractController
 from .._control._servo import Servo
 from .._drive._model import BallScrewDrive
@@ -37,7 +37,7 @@ from .._memory import release
 from .._simulation import SampledData, simulate
 from .._trajectory import Trajectory
 from ._parameterisation import check_sampled_by
-from ._penalties import MARGIN_REQUIREMENTS
+from ._penalties import MARGIN_REQUIREMENTS, grid_below_nyquist
 from ._schedule import InterpolatedLoop, ScheduledLoop
 
 __all__ = ["Certificate", "certify"]
@@ -194,16 +194,6 @@ def check_bounds(controller: AbstractController, servo: Servo, where: str) -> No
     (:func:`check_sampled_by`)."""
     if isinstance(controller, (ScheduledLoop, InterpolatedLoop)):
         check_sampled_by(controller.bounds.freq_hz[1], servo, where)
-
-
-def grid_below_nyquist(freq_hz, servo: Servo, where: str) -> np.ndarray:
-    """A margins' grid (Hz) checked as the sampled loop needs it: 1-D, positive, strictly
-    increasing, below the servo's Nyquist frequency."""
-    top = 0.5 / float(servo.period)
-    f = np.asarray(frequency_grid(freq_hz, where), float)
-    check(f, lambda v: v < top, where, f"below the servo's Nyquist frequency {top:.6g} Hz "
-          "(the margins are those of the sampled loop)")
-    return f
 
 
 def default_grid(servo: Servo) -> np.ndarray:

@@ -41,7 +41,7 @@ from .._drive._twin import TwinOptions, state_space
 from .._results import RESULTS
 from .._simulation import SampledData, simulate
 from .._trajectory import Trajectory
-from ._penalties import MARGIN_REQUIREMENTS, penalty
+from ._penalties import MARGIN_REQUIREMENTS, grid_below_nyquist, penalty
 
 __all__ = ["Objective", "ObjectiveTerms"]
 
@@ -141,11 +141,7 @@ class Objective(eqx.Module):
             raise ValueError(f"`Objective(freq_hz=...)` must be a 1-D grid of at least 8 "
                              f"frequencies, got shape {f.shape}")
         if is_concrete(f):  # checked where the grid is given, not at the first evaluation
-            where = "Objective(freq_hz=...)"
-            top = 0.5 / float(self.servo.period)
-            _checks.check(_checks.frequency_grid(f, where), lambda v: v < top, where,
-                          f"below the servo's Nyquist frequency {top:.6g} Hz (the margins "
-                          "are those of the sampled loop)")
+            grid_below_nyquist(f, self.servo, "Objective(freq_hz=...)")
         for name in ("error_scale_m", "margin_width", "margin_sharpness", "margin_weight",
                      "stability_weight", "current_weight"):
             v = getattr(self, name)

@@ -28,6 +28,7 @@ import math
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Complex, Float
 
 from .. import _checks
@@ -41,6 +42,16 @@ MARGIN_REQUIREMENTS = (
     ("phase_margin_deg", lambda v: 0 <= v < 180, "in [0, 180) degrees"),
 )
 """The margin requirements an objective and a certificate take: (name, test, expected)."""
+
+
+def grid_below_nyquist(freq_hz, servo, where: str) -> np.ndarray:
+    """A margins' grid (Hz) as the sampled loop of ``servo`` needs it: 1-D, positive, strictly
+    increasing, below the servo's Nyquist frequency; ``where`` names the caller's argument."""
+    top = 0.5 / float(servo.period)
+    f = np.asarray(_checks.frequency_grid(freq_hz, where), float)
+    _checks.check(f, lambda v: v < top, where, f"below the servo's Nyquist frequency {top:.6g} "
+                  "Hz (the margins are those of the sampled loop)")
+    return f
 
 
 def soft_min(d: Float[ArrayLike, "*batch freq"], beta: float) -> Float[Array, "*batch"]:
