@@ -95,7 +95,7 @@ def test_tune_newton_lowers_the_objective_with_the_exact_hessian():
     measured 4e-7 relative, the differences' truncation error)."""
     drive, start, par, obj = _problem()
     pos = np.array([0.115, 0.3])
-    r = fdjax.tune_newton(par, obj, drive, pos, start, steps=4, chunk=1)
+    r = fdjax.tune_newton(par, obj, drive, pos, start, steps=4, chunk=2)
     h = np.asarray(r.history)
     assert h.shape == (5, 2) and np.all(np.isfinite(h))
     assert np.asarray(r.evaluations).shape == (4, 2)
@@ -108,24 +108,28 @@ def test_tune_newton_lowers_the_objective_with_the_exact_hessian():
     # new positions and a new start (same shapes) run the programs compiled for the first call
     with compilations() as names:
         again = fdjax.tune_newton(par, obj, drive, np.array([0.2, 0.6]), r.theta, steps=4,
-                                  chunk=1)
+                                  chunk=2)
     assert names == [], names
     assert np.all(np.asarray(again.terms.total) < 0.9 * np.asarray(again.history)[0])
     # the exact Hessian every other step, SR1 updates between: J falls as far in four steps.
     # With a chunk of one step, below hessian_every, the steps run as calls of gradient steps
-    # and the exact step alone (in the program of the exact Hessian at every step above)
-    sr1 = fdjax.tune_newton(par, obj, drive, pos, start, steps=4, hessian_every=2, chunk=1)
+    # and the exact step alone (in the program of the exact Hessian at every step above: its
+    # hessian_every is traced)
+    with compilations() as names:
+        sr1 = fdjax.tune_newton(par, obj, drive, pos, start, steps=4, hessian_every=2, chunk=1)
+    assert "jit(_run_cycles)" not in names and "jit(_run_gradient_steps)" in names, names
     assert np.all(np.asarray(sr1.terms.total) < 0.6 * np.asarray(sr1.history)[0])  # 0.57, 0.17
-    # by default whole cycles of two steps run in one compiled loop whose count is traced,
-    # and the step after them in the loop of gradient steps compiled above: five steps repeat
-    # the four above in other programs, equal to round-off (measured 1.5e-8 relative: the
-    # trust-region steps amplify it), and three steps then compile nothing (small
-    # shape-dependent array ops aside: a history of another length)
+    # with a chunk of whole cycles, cycles of two steps run in one compiled loop whose count
+    # is traced, and the step after them in the loop of gradient steps: five steps repeat the
+    # four above in the programs compiled above, equal to round-off (measured 1.5e-8
+    # relative: the trust-region steps amplify it), and three steps compile nothing either
+    # (small shape-dependent array ops aside: a history of another length)
     with compilations() as names:
-        longer = fdjax.tune_newton(par, obj, drive, pos, start, steps=5, hessian_every=2)
-    assert "jit(_run_cycles)" in names and "jit(_run_gradient_steps)" not in names, names
+        longer = fdjax.tune_newton(par, obj, drive, pos, start, steps=5, hessian_every=2,
+                                   chunk=2)
+    assert not [n for n in names if "_run" in n or "_evaluate" in n], names
     with compilations() as names:
-        fdjax.tune_newton(par, obj, drive, pos, start, steps=3, hessian_every=2)
+        fdjax.tune_newton(par, obj, drive, pos, start, steps=3, hessian_every=2, chunk=2)
     assert not [n for n in names if "_run" in n or "_evaluate" in n], names
     assert np.asarray(longer.history).shape == (6, 2)
     np.testing.assert_allclose(np.asarray(longer.history)[:5], np.asarray(sr1.history),

@@ -228,23 +228,24 @@ def _loop_step(par, objective, drive, y, kind, quasi, shrink, max_radius):
 
 
 @eqx.filter_jit
-def _run_cycles(par, objective, drive, y, st, cycles, shrink, max_radius, every: int,
-                split: bool, quasi, rows: int):
-    """``cycles`` (traced: one program for any count up to rows/every) cycles of ``every`` − 1
-    gradient steps and one step with the exact Hessian (or the margins' with ``split``), in
-    one compiled loop: what does not depend on θ (the twins, their zero-order holds and
-    responses on the grid, the reference) is computed once, not at every step.  Returns the
-    iterate and J at every trial, (rows, n) (the first cycles·every rows filled); ``quasi``
-    (traced: the exact steps of any ``hessian_every`` share a program): SR1 updates of the
-    model's Hessian (with ``hessian_every`` > 1)."""
+def _run_cycles(par, objective, drive, y, st, cycles, shrink, max_radius, every, split: bool,
+                quasi, rows: int):
+    """``cycles`` cycles of ``every`` − 1 gradient steps and one step with the exact Hessian
+    (or, with ``split``, where ``every`` is 1, one step with the margins' Hessian), in one
+    compiled loop: what does not depend on θ (the twins, their zero-order holds and responses
+    on the grid, the reference) is computed once, not at every step.  Returns the iterate and J
+    at every trial, (rows, n) (the first cycles·every rows filled).  ``cycles``, ``every`` and
+    ``quasi`` (SR1 updates of the model's Hessian, with ``every`` > 1) are traced: one
+    program for any ``hessian_every`` and count of cycles up to rows/every."""
 
     def run(kind):
         return _loop_step(par, objective, drive, y, kind, quasi, shrink, max_radius)
 
     def cycle(_, carry):
-        if every > 1:
-            carry = jax.lax.fori_loop(0, every - 1, run("gradient"), carry)
-        return run("split" if split else "exact")(0, carry)
+        if split:
+            return run("split")(0, carry)
+        carry = jax.lax.fori_loop(0, every - 1, run("gradient"), carry)
+        return run("exact")(0, carry)
 
     hist = jnp.zeros((rows,) + st.j.shape, st.j.dtype)
     st, hist, _ = jax.lax.fori_loop(0, cycles, cycle, (st, hist, jnp.asarray(0)))
@@ -367,6 +368,10 @@ def tune_newton(
     # whole cycles of `every` steps per call where they fit in a chunk; else calls of gradient
     # steps and the exact step alone
     cycles_per_call = -(-chunk // every) if every <= chunk else 0
+    # the cycles' history: rows for any hessian_every up to max(chunk, every), so that one
+    # program serves every hessian_every and the exact step alone (cycles·every ≤ chunk +
+    # every − 1)
+    rows = 2 * max(chunk, every)
     history = [np.asarray(j)[None]]
     seen, t_later, later_steps = set(), 0.0, 0
     done = 0
@@ -376,14 +381,14 @@ def tune_newton(
         if cycles_per_call and done % every == 0 and steps - done >= every:
             n_cycles = min(cycles_per_call, (steps - done) // every)
             st, hist = _run_cycles(parameterisation, objective, drive, y, st,
-                                   jnp.asarray(n_cycles), every=every, split=split,
-                                   quasi=jnp.asarray(every > 1),
-                                   rows=cycles_per_call * every, **trust)
-            n, program = n_cycles * every, "cycles"
-        elif done == exact_at:  # the program of hessian_every = 1 and this chunk
-            st, hist = _run_cycles(parameterisation, objective, drive, y, st, jnp.asarray(1),
-                                   every=1, split=False, quasi=jnp.asarray(True), rows=chunk,
+                                   jnp.asarray(n_cycles), every=jnp.asarray(every),
+                                   split=split, quasi=jnp.asarray(every > 1), rows=rows,
                                    **trust)
+            n, program = n_cycles * every, "cycles"
+        elif done == exact_at:  # one cycle of one step: the exact step alone
+            st, hist = _run_cycles(parameterisation, objective, drive, y, st, jnp.asarray(1),
+                                   every=jnp.asarray(1), split=False, quasi=jnp.asarray(True),
+                                   rows=rows, **trust)
             n, program = 1, "exact"
         else:
             n = min(exact_at, steps, done + chunk) - done
