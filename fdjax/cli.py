@@ -671,8 +671,17 @@ class _Version(argparse.Action):
         parser.exit()
 
 
-def _out_problem(path: str) -> str | None:
-    """Why ``path`` cannot be the output folder; None when it is one (created if missing)."""
+# The files each command writes whose names are fixed, checked before the work starts (the
+# others are named from what the work computes).
+OUT_FILES = {"modes": ("modes.csv", "modes.json"),
+             "reproduce": ("summary.json", "control.json", "schedule.eqx", "schedule.json"),
+             "tune": ("control.json", "schedule.eqx", "schedule.json")}
+OUT_FILES["demo"] = OUT_FILES["reproduce"]
+
+
+def _out_problem(path: str, files: tuple = ()) -> str | None:
+    """Why ``path`` cannot be the output folder, or ``files`` be written in it; None when it
+    can (the folder is created if missing)."""
     if not path:
         return "an empty path; give a directory"
     if os.path.exists(path) and not os.path.isdir(path):
@@ -689,6 +698,12 @@ def _out_problem(path: str) -> str | None:
         return f"cannot create it: {exc.strerror or exc}"
     if not os.access(path, os.W_OK | os.X_OK):
         return "the directory is not writable"
+    for name in files:
+        target = os.path.join(path, name)
+        if os.path.isdir(target):
+            return f"{target} is a directory, where the command writes a file"
+        if os.path.exists(target) and not os.access(target, os.W_OK):
+            return f"{target} exists and is not writable"
     return None
 
 
@@ -794,7 +809,7 @@ def main(argv=None) -> int:
                      f"{args.command!r}: {', '.join(options)})")
     # the output folder before any work: a bad --out fails now, not after minutes of computing
     if getattr(args, "out", None) is not None:
-        problem = _out_problem(args.out)
+        problem = _out_problem(args.out, OUT_FILES.get(args.command, ()))
         if problem is not None:
             _subparser(parser, args.command).error(f"--out {args.out}: {problem}")
     if args.command == "reproduce":

@@ -15,6 +15,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.colors import LogNorm  # noqa: E402
 
+from . import _checks  # noqa: E402
 from ._drive._model import INPUTS, OUTPUTS  # noqa: E402
 
 __all__ = [
@@ -40,16 +41,64 @@ _UNITS = {
 }
 
 
+# -- the figures' arguments: checked before anything is drawn, named as the user called them --
+
+
+def _vector(value, where: str, what: str) -> np.ndarray:
+    """A 1-D, non-empty, finite real array (a scalar becomes one entry)."""
+    arr = np.atleast_1d(np.asarray(value, dtype=float))
+    if arr.ndim != 1 or arr.size == 0:
+        raise ValueError(f"`{where}` must be {what}: a 1-D array of at least one value, got "
+                         f"shape {arr.shape}")
+    return _checks.check(arr, np.isfinite, where, f"{what}, finite")
+
+
+def _frequencies(value, fn: str, name: str = "freq_hz") -> np.ndarray:
+    """A frequency grid (Hz): 1-D, finite and positive."""
+    f = _vector(value, f"{fn}({name}=...)", "frequencies in Hz")
+    return _checks.check(f, lambda v: v > 0, f"{fn}({name}=...)", "positive (Hz)")
+
+
+def _positions_m(value, fn: str, name: str = "position_m") -> np.ndarray:
+    """Table positions (m): 1-D and finite; a value past the longest travel was given in mm
+    and the message says so."""
+    pos = _vector(value, f"{fn}({name}=...)", "table positions in m")
+    _checks.at_most(pos, _checks.LONGEST_TRAVEL_M, f"{fn}({name}=...)",
+                    "no ball-screw axis is longer")
+    return pos
+
+
+def _positions_mm(value, fn: str, name: str = "positions_mm") -> np.ndarray:
+    """Table positions (mm): 1-D and finite; all within ±2 mm is a travel given in metres."""
+    pos = _vector(value, f"{fn}({name}=...)", "table positions in mm")
+    if pos.size > 1 and np.max(np.abs(pos)) <= 2.0:
+        raise ValueError(f"`{fn}({name}=...)` must be table positions in mm, got values from "
+                         f"{pos.min():.6g} to {pos.max():.6g}: positions in metres? "
+                         f"{pos.max():.6g} m is {pos.max() * 1e3:.6g} mm")
+    return pos
+
+
+def _shaped(value, shape: tuple, where: str, names: str, dtype=None) -> np.ndarray:
+    """An array of exactly ``shape`` (``names`` spells its axes, e.g. "(n_pos, n_freq)")."""
+    arr = np.asarray(value) if dtype is None else np.asarray(value, dtype=dtype)
+    if arr.shape != tuple(shape):
+        raise ValueError(f"`{where}` must have shape {names} = {tuple(shape)}, got {arr.shape}")
+    return arr
+
+
 def plot_three_mass_frf(freq_hz, H, natural_hz=None):
     """Paper Fig. 2: magnitude and phase of h11, h21, h31 of the 3M2S system.
 
     Args:
         freq_hz: frequency grid (Hz).
         H: receptance (n_freq, 3, 3) from ``three_mass().frf``.
-        natural_hz: optional natural frequencies to mark.
+        natural_hz: optional natural frequencies to mark (Hz).
     """
-    f = np.asarray(freq_hz)
-    H = np.asarray(H)
+    fn = "plot_three_mass_frf"
+    f = _frequencies(freq_hz, fn)
+    H = _shaped(H, (f.size, 3, 3), f"{fn}(H=...)", "(n_freq, 3, 3)")
+    if natural_hz is not None:
+        natural_hz = _vector(natural_hz, f"{fn}(natural_hz=...)", "natural frequencies in Hz")
     fig, axes = plt.subplots(2, 3, figsize=(12, 5.5), sharex=True)
     for k in range(3):
         h = H[:, k, 0]
@@ -80,8 +129,21 @@ def plot_deflection_shapes(shapes, labels):
             normalised here to unit peak so that signs and relative amplitudes show).
         labels: one title per shape, e.g. ``["rigid body", "103.7 Hz", "154.5 Hz"]``.
     """
+    fn = "plot_deflection_shapes"
     shapes = np.asarray(shapes, dtype=float)
+    if shapes.ndim != 2 or shapes.size == 0:
+        raise ValueError(f"`{fn}(shapes=...)` must have shape (n_shapes, n_coordinates), got "
+                         f"{shapes.shape}")
+    _checks.check(shapes, np.isfinite, f"{fn}(shapes=...)", "finite")
+    peak = np.max(np.abs(shapes), axis=1)
+    if np.any(peak == 0):
+        raise ValueError(f"`{fn}(shapes=...)` must have a non-zero entry in every shape, got "
+                         f"an all-zero row {int(np.argmin(peak))}")
     n, m = shapes.shape
+    labels = list(labels)
+    if len(labels) != n:
+        raise ValueError(f"`{fn}(labels=...)` must hold one title per shape ({n}), got "
+                         f"{len(labels)}")
     fig, axes = plt.subplots(1, n, figsize=(3.6 * n, 3.4), sharey=True)
     for k, ax in enumerate(np.atleast_1d(axes)):
         v = shapes[k] / np.max(np.abs(shapes[k]))
@@ -106,9 +168,15 @@ def plot_velocity_nyquist(freq_hz, h_collocated, h_noncollocated, *, labels=("v1
 
     Args:
         freq_hz: frequency grid (Hz).
-        h_collocated, h_noncollocated: displacement receptances on that grid (complex).
+        h_collocated, h_noncollocated: displacement receptances on that grid (complex),
+            shape (n_freq,).
+        labels: the two panels' titles.
     """
-    f = np.asarray(freq_hz)
+    fn = "plot_velocity_nyquist"
+    f = _frequencies(freq_hz, fn)
+    h_collocated = _shaped(h_collocated, f.shape, f"{fn}(h_collocated=...)", "(n_freq,)")
+    h_noncollocated = _shaped(h_noncollocated, f.shape, f"{fn}(h_noncollocated=...)",
+                              "(n_freq,)")
     iw = 2j * np.pi * f
     fig, axes = plt.subplots(1, 2, figsize=(10, 4.6))
     for ax, h, lab in zip(axes, (h_collocated, h_noncollocated), labels):
@@ -138,7 +206,8 @@ def plot_frf_family(position_m, freq_hz, H):
         freq_hz: frequency grid (Hz), shape (n_freq,).
         H: ``drive.frf(position_m, freq_hz)``, shape (n_pos, n_freq, 3, 2).
     """
-    pos, f, H = np.atleast_1d(np.asarray(position_m, float)), np.asarray(freq_hz), np.asarray(H)
+    fn = "plot_frf_family"
+    pos, f, H = _positions_m(position_m, fn), _frequencies(freq_hz, fn), np.asarray(H)
     if H.ndim == 3:  # one position: drive.frf(0.3, f)[0]
         H = H[None]
     if H.shape != (pos.size, f.size, 3, 2):
@@ -164,8 +233,7 @@ def plot_frf_family(position_m, freq_hz, H):
 
 
 def plot_frf_cloud(
-    position_m, freq_hz, h, *, title="|ω² h21| = |ẍ2/T1|", units="m/(s²·N·m)",
-    accelerance=True, decades=5.0,
+    position_m, freq_hz, h, *, title=None, units=None, accelerance=True, decades=5.0,
 ):
     """Paper Fig. 11: cloud image of one FRF magnitude over frequency × table position.
 
@@ -176,11 +244,22 @@ def plot_frf_cloud(
         position_m: table positions (m), shape (n_pos,).
         freq_hz: frequency grid (Hz), shape (n_freq,).
         h: complex FRF entry, shape (n_pos, n_freq), e.g. ``drive.frf(...)[:, :, 1, 0]``.
+        title: what is shown, for the title and the colour bar (default: h21's accelerance
+            |ω² h21| = |ẍ2/T1|, or its receptance |h21| = |x2/T1| with ``accelerance=False``).
+        units: its units (default: those of the default title).
         accelerance: multiply by ω² before plotting.
         decades: colour range below the maximum, in decades.
     """
-    pos, f = np.atleast_1d(np.asarray(position_m, float)), np.asarray(freq_hz, float)
-    a = np.abs(np.asarray(h)).reshape(pos.size, f.size)
+    fn = "plot_frf_cloud"
+    pos, f = _positions_m(position_m, fn), _frequencies(freq_hz, fn)
+    if np.ndim(h) == 1 and pos.size == 1:  # one position: drive.frf(0.3, f)[0, :, 1, 0]
+        h = np.asarray(h)[None]
+    a = np.abs(_shaped(h, (pos.size, f.size), f"{fn}(h=...)", "(n_pos, n_freq)"))
+    if title is None:
+        title = "|ω² h21| = |ẍ2/T1|" if accelerance else "|h21| = |x2/T1|"
+        units = units or ("m/(s²·N·m)" if accelerance else "m/(N·m)")
+    if units is None:
+        raise ValueError(f"`{fn}(units=...)` must be given with a title of your own, got None")
     if accelerance:
         a = a * (2 * np.pi * f[None, :]) ** 2
     top = np.nanmax(a) if np.any(np.isfinite(a)) else np.nan
@@ -208,9 +287,18 @@ def plot_resonant_phase(position_m, frequency_hz, phase_deg, *, title="h21 = x2/
             second panel showing how each mode's frequency moves.
         phase_deg: tracked resonant phases (n_pos, n_modes), degrees in (−360, 0].
     """
-    pos = np.atleast_1d(np.asarray(position_m, float)) * 1e3
-    f = np.asarray(frequency_hz, float).reshape(pos.size, -1)
-    ph = np.array(phase_deg, float).reshape(pos.size, -1)
+    fn = "plot_resonant_phase"
+    pos = _positions_m(position_m, fn) * 1e3
+    f = np.asarray(frequency_hz, float)
+    if f.ndim == 1:  # one position's modes, or one mode at every position
+        f = f[None] if pos.size == 1 else f[:, None]
+    if f.ndim != 2 or f.shape[0] != pos.size or f.shape[1] == 0:
+        raise ValueError(f"`{fn}(frequency_hz=...)` must have shape (n_pos, n_modes) with "
+                         f"n_pos = {pos.size}, got {np.shape(frequency_hz)}")
+    ph = np.array(phase_deg, float)
+    if ph.ndim == 1:
+        ph = ph[None] if pos.size == 1 else ph[:, None]
+    _shaped(ph, f.shape, f"{fn}(phase_deg=...)", "(n_pos, n_modes), as frequency_hz's")
     if not np.any(np.isfinite(ph)):
         raise ValueError("`plot_resonant_phase(phase_deg=...)` has no finite phase to plot")
     # phases are defined modulo 360°: unwrap along the position so curves do not jump (each
@@ -269,8 +357,14 @@ def plot_peak_filter_effect(
         band_hz: optional (f_lo, f_hi) of the target mode's band, shaded on the Bode plots.
         filter_label: what the two cases differ by, for the titles ("peak filter", "MCM").
     """
-    f, pos = np.asarray(freq_hz), np.atleast_1d(np.asarray(position_m))
-    Ls = [np.atleast_2d(np.asarray(L_without)), np.atleast_2d(np.asarray(L_with))]
+    fn = "plot_peak_filter_effect"
+    f, pos = _frequencies(freq_hz, fn), _positions_m(position_m, fn)
+    Ls = [_shaped(np.atleast_2d(np.asarray(L)), (pos.size, f.size), f"{fn}({name}=...)",
+                  "(n_pos, n_freq)") for L, name in ((L_without, "L_without"),
+                                                     (L_with, "L_with"))]
+    if not isinstance(filter_label, str) or not filter_label:
+        raise ValueError(f"`{fn}(filter_label=...)` must be a non-empty string, got "
+                         f"{filter_label!r}")
     colors = plt.cm.viridis(np.linspace(0, 0.9, pos.size))
     fig = plt.figure(figsize=(12, 10))
     grid = fig.add_gridspec(3, 2, height_ratios=[2.2, 1.0, 1.0])
@@ -443,12 +537,23 @@ def plot_rms_over_travel(positions_mm, results, *, labels=None, design_mm=(),
         design_mm: the design positions of the local tunings (mm), drawn as dotted lines.
         modulus_margin: the requirement line.
     """
-    y = np.asarray(positions_mm, float)
+    fn = "plot_rms_over_travel"
+    y = _positions_mm(positions_mm, fn)
+    if not results:
+        raise ValueError(f"`{fn}(results=...)` must hold at least one controller")
+    for name, r in results.items():
+        for key in ("rms_error_um", "stable", "modulus_margin"):
+            if key not in r:
+                raise ValueError(f"`{fn}(results=...)` must give {key!r} for every "
+                                 f"controller, got none for {name!r}")
+            if len(r[key]) != y.size:
+                raise ValueError(f"`{fn}(results=...)` must give one {key!r} per position "
+                                 f"({y.size}), got {len(r[key])} for {name!r}")
+    design_mm = _vector(design_mm, f"{fn}(design_mm=...)", "positions in mm") if len(
+        design_mm) else ()
     fig, (ax, ax_m) = plt.subplots(2, 1, figsize=(10, 7.5), sharex=True,
                                    gridspec_kw=dict(height_ratios=[2.0, 1.0]))
     colors = plt.cm.tab10(np.arange(len(results)))
-    if not results:
-        raise ValueError("`plot_rms_over_travel(results=...)` must hold at least one controller")
     values = np.concatenate([np.asarray([np.nan if v is None else v for v in r["rms_error_um"]],
                                         float) for r in results.values()])
     # every position unstable: no error to scale by, the × marks alone
@@ -486,7 +591,19 @@ def plot_convergence(curves, *, title="Convergence of the tunings"):
     Args:
         curves: ``{label: (history, line labels or None)}``, history (steps,) or (steps, n).
     """
+    fn = "plot_convergence"
     n = len(curves)
+    if n == 0:
+        raise ValueError(f"`{fn}(curves=...)` must hold at least one tuning")
+    for label, (h, names) in curves.items():
+        h = np.asarray(h, float)
+        if h.ndim not in (1, 2) or h.shape[0] == 0:
+            raise ValueError(f"`{fn}(curves=...)` must give a history of shape (steps,) or "
+                             f"(steps, n), got {h.shape} for {label!r}")
+        lines = 1 if h.ndim == 1 else h.shape[1]
+        if names is not None and len(names) != lines:
+            raise ValueError(f"`{fn}(curves=...)` must give one line label per column of the "
+                             f"history ({lines}), got {len(names)} for {label!r}")
     fig, axes = plt.subplots(1, n, figsize=(4.2 * n, 3.8), squeeze=False)
     for ax, (label, (h, names)) in zip(axes[0], curves.items()):
         h = np.asarray(h, float)

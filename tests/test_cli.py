@@ -242,6 +242,21 @@ def test_out_is_checked_before_any_work(command, where, reason, tmp_path, monkey
     assert (tmp_path / "file").read_text() == "not a folder"
 
 
+@pytest.mark.parametrize("command, name", [("modes", "modes.json"), ("demo", "summary.json"),
+                                           ("tune", "schedule.eqx")])
+def test_a_folder_where_a_file_goes_is_refused_before_any_work(command, name, tmp_path,
+                                                                monkeypatch, capsys):
+    """A folder in the way of a file the command writes: refused before minutes of work."""
+    _no_work(monkeypatch)
+    (tmp_path / name).mkdir()
+    with pytest.raises(SystemExit) as exc:
+        cli.main([command, "--out", str(tmp_path)])
+    assert exc.value.code == 2
+    assert capsys.readouterr().err.splitlines()[-1] == (
+        f"fdjax {command}: error: --out {tmp_path}: {tmp_path}/{name} is a directory, where "
+        "the command writes a file")
+
+
 def test_out_empty_is_refused(monkeypatch, capsys):
     _no_work(monkeypatch)
     with pytest.raises(SystemExit) as exc:

@@ -252,6 +252,80 @@ def test_figures_take_one_position_and_missing_values():
     plt.close("all")
 
 
+def test_figures_name_their_bad_arguments():
+    """Positions in mm where metres are expected (and the reverse), transposed or short data,
+    non-finite positions, an empty input: refused before anything is drawn, in the house
+    style, instead of a scrambled figure or an error from inside NumPy or matplotlib."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from fdjax import plots
+
+    f = np.geomspace(10.0, 3000.0, 4)
+    pos = [0.1, 0.2, 0.3]
+    h = (100.0 * np.arange(3)[:, None] + np.arange(4)[None] + 1).astype(complex)
+    L = np.full((3, 4), -0.5 + 0.1j)
+    res = {"a": {"rms_error_um": [1.0, 2.0, 3.0], "stable": [True] * 3,
+                 "modulus_margin": [0.6] * 3}}
+    cases = [
+        (lambda: plots.plot_frf_family([115, 400, 700], f, np.zeros((3, 4, 3, 2))),
+         r"`plot_frf_family\(position_m=\.\.\.\)` must be at most 20 m .*115 mm is 0.115 m"),
+        (lambda: plots.plot_frf_cloud([115, 400, 700], f, h),
+         r"`plot_frf_cloud\(position_m=\.\.\.\)` must be at most 20 m"),
+        (lambda: plots.plot_frf_cloud(pos, f, h.T),
+         r"`plot_frf_cloud\(h=\.\.\.\)` must have shape \(n_pos, n_freq\) = \(3, 4\), "
+         r"got \(4, 3\)"),
+        (lambda: plots.plot_frf_cloud([np.nan, 0.2, 0.3], f, h),
+         r"`plot_frf_cloud\(position_m=\.\.\.\)` must be table positions in m, finite, got "
+         r"nan at index 0"),
+        (lambda: plots.plot_resonant_phase(pos, np.ones((2, 3)), np.ones((2, 3))),
+         r"`plot_resonant_phase\(frequency_hz=\.\.\.\)` must have shape \(n_pos, n_modes\)"),
+        (lambda: plots.plot_resonant_phase(pos, np.ones((3, 2)), np.ones((3, 3))),
+         r"`plot_resonant_phase\(phase_deg=\.\.\.\)` must have shape"),
+        (lambda: plots.plot_peak_filter_effect(f, pos, L[:2], L),
+         r"`plot_peak_filter_effect\(L_without=\.\.\.\)` must have shape \(n_pos, n_freq\)"),
+        (lambda: plots.plot_peak_filter_effect(f, [], L, L),
+         r"`plot_peak_filter_effect\(position_m=\.\.\.\)` must be table positions in m: "
+         r"a 1-D array of at least one value, got shape \(0,\)"),
+        (lambda: plots.plot_peak_filter_effect(f, pos, L, L, filter_label=""),
+         r"`plot_peak_filter_effect\(filter_label=\.\.\.\)` must be a non-empty string"),
+        (lambda: plots.plot_rms_over_travel([0.1, 0.4, 0.7], res),
+         r"`plot_rms_over_travel\(positions_mm=\.\.\.\)` must be table positions in mm, "
+         r"got values from 0.1 to 0.7: positions in metres\? 0.7 m is 700 mm"),
+        (lambda: plots.plot_rms_over_travel([100, 200], res),
+         r"`plot_rms_over_travel\(results=\.\.\.\)` must give one 'rms_error_um' per "
+         r"position \(2\), got 3 for 'a'"),
+        (lambda: plots.plot_rms_over_travel([100, 200, 300], {"a": {"rms_error_um": [1] * 3,
+                                                                    "stable": [True] * 3}}),
+         r"must give 'modulus_margin' for every controller, got none for 'a'"),
+        (lambda: plots.plot_convergence({}),
+         r"`plot_convergence\(curves=\.\.\.\)` must hold at least one tuning"),
+        (lambda: plots.plot_convergence({"t": (np.ones((5, 2)), ["one"])}),
+         r"must give one line label per column of the history \(2\), got 1 for 't'"),
+        (lambda: plots.plot_three_mass_frf(f, np.zeros((3, 3, 3))),
+         r"`plot_three_mass_frf\(H=\.\.\.\)` must have shape \(n_freq, 3, 3\) = \(4, 3, 3\)"),
+        (lambda: plots.plot_deflection_shapes(np.eye(3), ["a"]),
+         r"`plot_deflection_shapes\(labels=\.\.\.\)` must hold one title per shape \(3\), "
+         r"got 1"),
+        (lambda: plots.plot_deflection_shapes(np.array([[1.0, 2.0], [0.0, 0.0]]), ["a", "b"]),
+         r"must have a non-zero entry in every shape, got an all-zero row 1"),
+        (lambda: plots.plot_velocity_nyquist(f, h[0], h[0, :3]),
+         r"`plot_velocity_nyquist\(h_noncollocated=\.\.\.\)` must have shape \(n_freq,\)"),
+        (lambda: plots.plot_velocity_nyquist([], [], []),
+         r"`plot_velocity_nyquist\(freq_hz=\.\.\.\)` must be frequencies in Hz: a 1-D array"),
+    ]
+    for call, match in cases:
+        with pytest.raises(ValueError, match=match):
+            call()
+    # the receptance's own label when the accelerance is off, and one mode's phase per position
+    fig = plots.plot_frf_cloud(pos, f, h, accelerance=False)
+    assert fig.axes[1].get_ylabel() == "|h21| = |x2/T1| (m/(N·m))"
+    plots.plot_resonant_phase(pos, [50.0, 51.0, 52.0], [-90.0, -100.0, -110.0])
+    plt.close("all")
+
+
 def test_first_use_inside_a_users_jit_leaks_no_tracer():
     """fdjax loads its modules on first use; when that use is inside a jitted function, the
     module's constants (the default Servo()) were built as tracers of that trace, and the
