@@ -52,6 +52,9 @@ class LumpedModel(eqx.Module):
     damping: Float[Array, "n n"] = _matrix_field("damping")
 
     def __check_init__(self):
+        if self.mass.ndim != 2 or self.mass.shape[0] == 0:
+            raise ValueError(f"`LumpedModel(mass=...)` must be a square matrix (n, n) with n ≥ "
+                             f"1, got shape {self.mass.shape}")
         n = self.mass.shape[-1]
         for name in ("mass", "stiffness", "damping"):
             a = getattr(self, name)
@@ -128,13 +131,21 @@ class LumpedModel(eqx.Module):
         """Undamped normal modes: natural frequencies (Hz, ascending) and mass-normalised shapes.
 
         Solves ``K φ = ω² M φ`` through the symmetric form ``L⁻¹ K L⁻ᵀ`` with ``M = L Lᵀ``;
-        rigid-body modes come out at (numerically) zero frequency.
+        rigid-body modes come out at (numerically) zero frequency, with a zero derivative (the
+        square root is not differentiated at ω² ≤ 0).  A mass matrix that is not positive
+        definite (checked at construction where concrete) is an error here under ``jit``.
         """
         L = jnp.linalg.cholesky(self.mass)
+        # NaN where M is not positive definite: refused at construction where M is concrete,
+        # here where it is traced
+        L = _checks.check(L, jnp.isfinite, "LumpedModel.modes()",
+                          "computed from a symmetric positive definite mass matrix")
         Linv = jnp.linalg.inv(L)
         lam, V = jnp.linalg.eigh(Linv @ self.stiffness @ Linv.T)
         shapes = Linv.T @ V
-        return jnp.sqrt(jnp.clip(lam, 0.0)) / (2 * jnp.pi), shapes
+        flexible = lam > 0.0
+        omega = jnp.where(flexible, jnp.sqrt(jnp.where(flexible, lam, 1.0)), 0.0)
+        return omega / (2 * jnp.pi), shapes
 
 
 @eqx.filter_jit
@@ -187,6 +198,8 @@ def chain_model(
     k = vector(stiffnesses, "stiffnesses", _checks.positive)
     c = vector(dampings, "dampings", _checks.nonnegative)
     n = m.shape[0]
+    if n == 0:
+        raise ValueError("`chain_model(masses=...)` must hold at least one mass, got none")
     if k.shape != (n - 1,) or c.shape != (n - 1,):
         raise ValueError(
             f"`chain_model(stiffnesses=..., dampings=...)` must have {n - 1} entries for "

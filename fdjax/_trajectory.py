@@ -278,13 +278,15 @@ def _double_s_durations(h: float, v: float, a: float, j: float) -> tuple[float, 
         tj = math.sqrt(v / j)
         ta = 2.0 * tj
     reach = v * ta
+    # T_c ≥ 0 in exact arithmetic; on a limit's boundary (v j = a², or h = 2a³/j²) its
+    # rounding can fall a few ulps below zero, so it is clamped at 0
     if h >= reach:
-        return tj, ta - 2.0 * tj, (h - reach) / v
+        return tj, max(ta - 2.0 * tj, 0.0), (h - reach) / v
     if h >= 2.0 * a**3 / j**2:
         # v_p²/a + v_p a/j − h = 0; the root is well conditioned (√(a⁴/j² + 4ha) ≥ 3a²/j).
         vp = (math.sqrt((a * a / j) ** 2 + 4.0 * h * a) - a * a / j) / 2.0
         tj = a / j
-        return tj, vp / a - tj, 0.0
+        return tj, max(vp / a - tj, 0.0), 0.0
     return (h / (2.0 * j)) ** (1.0 / 3.0), 0.0, 0.0
 
 

@@ -110,6 +110,28 @@ def test_limits_reached_in_long_move():
     assert abs(durations[3] - (d / v - v / a - a / j)) <= 1e-12 * (d / v)
 
 
+def test_moves_on_a_limits_boundary():
+    """On the boundaries between regimes (v j = a², where the acceleration just reaches a; h
+    = 2a³/j², where the move just reaches a without cruising) the constant-acceleration
+    time is zero, and its rounding a few ulps below zero must not make the knots decrease
+    (it did: 384 of 3000 random boundary cases were refused).  The move ends at rest at its
+    distance and its total time is the closed form's."""
+    rng = np.random.default_rng(0)
+    for k in range(300):
+        a, j = rng.uniform(0.5, 5.0), rng.uniform(10.0, 1000.0)
+        v = a * a / j if k % 2 else rng.uniform(0.05, 1.0)
+        h = 2.0 * a**3 / j**2 if k % 3 else v * (a / j + v / a)
+        traj = jerk_limited(h, v, a, j)
+        r, vel, acc, _ = (float(np.asarray(x)[0]) for x in traj.evaluate(
+            np.array([float(traj.t_knots[-1])])))
+        assert abs(r - h) <= 1e-12 * h and abs(vel) <= 1e-12 * v and abs(acc) <= 1e-12 * a
+    # the paper's-scale examples that were refused: T = 4 T_j and 2 T_a at the boundary
+    for h, v, a, j, total in ((0.02, 1.0, 1.0, 10.0, 0.4), (0.16, 1.0, 2.0, 10.0, 0.8)):
+        assert abs(float(jerk_limited(h, v, a, j).t_knots[-1]) - total) <= 1e-15, (h, total)
+    assert float(reciprocating(stroke=1e-3, v_max=1.0, a_max=5.0, j_max=500.0)
+                 .t_knots[-1]) > 0
+
+
 def test_mirror_dwell_and_null_move():
     d, v, a, j = V_NOT
     fwd = jerk_limited(d, v, a, j, start=0.1)
