@@ -73,7 +73,7 @@ def couple(
     Returns:
         The coupled receptance, same shape as ``receptance``.
     """
-    Y = jnp.asarray(receptance)
+    Y = _checks.numeric(receptance, "couple(receptance=...)")
     if Y.ndim < 2 or Y.shape[-1] != Y.shape[-2]:
         raise ValueError(f"`couple(receptance=...)` must have shape (..., n, n), got {Y.shape}")
     Y = _checks.finite(Y.astype(jnp.complex128), "couple(receptance=...)")
@@ -100,13 +100,19 @@ def couple(
         Be = [[0 if Bn[k, i] == 0 else Be[k][i] for i in range(B.shape[1])] for k in range(m)]
     Je = None
     if joint is not None:
-        J = jnp.asarray(joint).astype(jnp.complex128)
+        J = _checks.numeric(joint, "couple(joint=...)").astype(jnp.complex128)
         if J.ndim < 2 or J.shape[-2:] != (m, m):
             raise ValueError(f"`couple(joint=...)` must have shape (..., {m}, {m}), got {J.shape}")
         J = _checks.finite(J, "couple(joint=...)")
         Je = entries(J)
+    batch = Y.shape[:-2]
+    if joint is not None:
+        try:
+            batch = jnp.broadcast_shapes(Y.shape[:-2], J.shape[:-2])
+        except ValueError:
+            raise ValueError(f"`couple(joint=...)` must broadcast against the receptance's "
+                             f"batch {Y.shape[:-2]}, got batch {J.shape[:-2]}") from None
     out = couple_entries(entries(Y), Be, Je)
-    batch = Y.shape[:-2] if joint is None else jnp.broadcast_shapes(Y.shape[:-2], J.shape[:-2])
     out = from_entries(out, shape=batch, dtype=jnp.complex128)
     # a singular interface bracket (B Y Bᵀ + Y_j not invertible) shows up as inf/NaN here
     return _checks.finite_output(out, "couple(...)")
@@ -137,7 +143,13 @@ def joint_receptance(stiffness: Float[ArrayLike, "*shape"], damping: Float[Array
                          where.format("stiffness"))
     c = _checks.nonnegative(_checks.real_array(damping, where.format("damping")),
                             where.format("damping"))
-    w = _checks.finite(jnp.asarray(omega), where.format("omega"))
+    w = _checks.finite(_checks.numeric(omega, where.format("omega")), where.format("omega"))
+    try:
+        jnp.broadcast_shapes(k.shape, c.shape, w.shape)
+    except ValueError:
+        raise ValueError(f"`joint_receptance(stiffness=..., damping=..., omega=...)` must "
+                         f"broadcast against each other, got shapes {k.shape}, {c.shape} and "
+                         f"{w.shape}") from None
     cx = _checks.to_complex
     out = 1.0 / (cx(k) + 1j * cx(w) * cx(c))
     return _checks.finite_output(out, "joint_receptance(...)")

@@ -29,7 +29,7 @@ def _matrix_field(name: str):
 
 def _omega(omega, where: str) -> Array:
     """Angular frequencies (rad/s, real or complex, any shape) that must be finite."""
-    return _checks.finite(jnp.asarray(omega), where)
+    return _checks.finite(_checks.numeric(omega, where), where)
 
 
 class LumpedModel(eqx.Module):

@@ -43,6 +43,7 @@ from ._checks import (
     inside,
     is_concrete,
     nonnegative,
+    numeric,
     positive,
     static_int,
 )
@@ -54,7 +55,7 @@ _COMPARE_ALL_MAX = 64  # segments up to which `evaluate` locates t by comparing 
 
 def _real(value, where: str, ndim: int) -> Array:
     """``value`` as a float64 array of rank ``ndim`` (shape and dtype facts only)."""
-    arr = jnp.asarray(value)
+    arr = numeric(value, where)
     if jnp.issubdtype(arr.dtype, jnp.complexfloating):
         raise ValueError(f"`{where}` must be real, got dtype {arr.dtype}")
     if arr.ndim != ndim:
@@ -150,7 +151,7 @@ class Trajectory(eqx.Module):
         r = r_i + v_i τ + a_i τ²/2 + j_i τ³/6, v = v_i + a_i τ + j_i τ²/2, a = a_i + j_i τ.
         Outside [0, T] the motion rests (v = a = j = 0) at r0 before and at r(T) after.
         """
-        t = jnp.asarray(t)
+        t = numeric(t, "Trajectory.evaluate(t=...)")
         if jnp.issubdtype(t.dtype, jnp.complexfloating):
             raise ValueError(f"`Trajectory.evaluate(t=...)` must be real, got dtype {t.dtype}")
         t = finite(t.astype(jnp.float64), "Trajectory.evaluate(t=...)")
@@ -161,7 +162,7 @@ class Trajectory(eqx.Module):
 
         For n samples at a step dt use ``t = dt * jnp.arange(n)``.
         """
-        t = jnp.asarray(t)
+        t = numeric(t, "Trajectory.sample(t=...)")
         if jnp.issubdtype(t.dtype, jnp.complexfloating):
             raise ValueError(f"`Trajectory.sample(t=...)` must be real, got dtype {t.dtype}")
         t = finite(t.astype(jnp.float64), "Trajectory.sample(t=...)")

@@ -2,6 +2,7 @@
 
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 import fdjax
 
@@ -86,3 +87,26 @@ def test_an_interface_with_a_zero_or_repeated_row_is_named():
                                              r"independent rows .* got rank 1 for 2 rows"):
             fdjax.couple(Y, B)
     assert fdjax.couple(Y, np.array([[1.0, -1.0, 0.0]])).shape == (1, 3, 3)
+
+
+def test_inputs_that_are_not_numbers_or_do_not_broadcast_are_named():
+    """Raised by the function the user called, with the parameter, instead of JAX's errors."""
+    from fdjax._coupling import couple, joint_receptance
+
+    rng = np.random.default_rng(0)
+    Y, Yj = rng.normal(size=(5, 3, 3)) + 0j, rng.normal(size=(4, 1, 1)) + 0j
+    with pytest.raises(TypeError, match=r"`couple\(receptance=\.\.\.\)` must be a number or an "
+                                        r"array of numbers, got 'a'"):
+        couple("a", np.eye(3))
+    with pytest.raises(ValueError, match=r"`couple\(joint=\.\.\.\)` must broadcast against the "
+                                         r"receptance's batch \(5,\), got batch \(4,\)"):
+        couple(Y, np.eye(3)[:1], Yj)
+    with pytest.raises(TypeError, match=r"`joint_receptance\(omega=\.\.\.\)` must be a number"):
+        joint_receptance(1.0, 1.0, "1")
+    with pytest.raises(ValueError, match=r"`joint_receptance\(stiffness=\.\.\., damping=\.\.\., "
+                                         r"omega=\.\.\.\)` must broadcast against each other, got "
+                                         r"shapes \(2,\), \(3,\) and \(\)"):
+        joint_receptance([1.0, 2.0], [1.0, 2.0, 3.0], 1.0)
+    with pytest.raises(TypeError, match=r"`LumpedModel\.receptance\(omega=\.\.\.\)` must be a "
+                                        r"number or an array of numbers, got '1'"):
+        fdjax.three_mass().receptance("1")

@@ -468,6 +468,20 @@ def test_errors(call, match):
         call()
 
 
+@pytest.mark.parametrize("call, match", [
+    (lambda: Trajectory("abc", [1.0]), r"`Trajectory\(t_knots=\.\.\.\)` must be a number or "
+                                       r"an array of numbers, got 'abc'"),
+    (lambda: Trajectory([0.0, 1.0], [1.0], None), r"`Trajectory\(r0=\.\.\.\)` must be a number"),
+    (lambda: jerk_limited(*FULL).evaluate("0.1"),
+     r"`Trajectory\.evaluate\(t=\.\.\.\)` must be a number or an array of numbers, got '0.1'"),
+    (lambda: jerk_limited(*FULL).sample(None), r"`Trajectory\.sample\(t=\.\.\.\)` must be a "
+                                               r"number or an array of numbers, got None"),
+])
+def test_what_is_not_numbers_is_named(call, match):
+    with pytest.raises(TypeError, match=match):
+        call()
+
+
 def test_errors_under_jit():
     """Knots traced inside jit are checked when the program runs (eqx.error_if)."""
 
