@@ -95,6 +95,10 @@ def report(title, res):
 
 
 if __name__ == "__main__":
+    import argparse
+
+    # no options: --help describes the script, anything else is refused
+    argparse.ArgumentParser(description=__doc__.split("\n\n")[0], allow_abbrev=False).parse_args()
     drive = fdjax.table1_drive()
     target, pos = fdjax.TABLE_1, fdjax.TABLE_1_POSITION_M
     # the shipped drive as it is: no steps, only the residuals

@@ -15,11 +15,16 @@ raise, so it runs with ``throw=False`` and its ``result`` is read back and check
 Run: ``python examples/closed_loop.py`` (≈ 30 s on 2 CPU cores, mostly compilation).
 """
 
+import argparse
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 import fdjax
+
+# no options: --help describes the script, anything else is refused
+argparse.ArgumentParser(description=__doc__.split("\n\n")[0], allow_abbrev=False).parse_args()
 
 drive = fdjax.reference_drive()
 reference = fdjax.reciprocating(stroke=5e-3, cycles=2)  # 5 mm, 0.1 m/s, 2 m/s², 200 m/s³

@@ -47,7 +47,7 @@ from screw_end_design import THETA, sharp_objective  # noqa: E402
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], allow_abbrev=False)
     ap.add_argument("--steps", type=int, default=60, help="L-BFGS steps (default 60)")
     ap.add_argument("--sharp", action="store_true",
                     help="train on the sharper objective of examples/screw_end_design.py")

@@ -52,7 +52,7 @@ def rms_um(controller, drive, motion, twin):
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], allow_abbrev=False)
     ap.add_argument("--steps", type=int, default=0, help="end-to-end steps on the long stroke")
     ap.add_argument("--learning-rate", type=float, default=1e-3)
     ap.add_argument("--certify", action="store_true", help="certify the result every 1 mm")

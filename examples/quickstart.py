@@ -3,11 +3,16 @@
 Run: python examples/quickstart.py
 """
 
+import argparse
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 import fdjax  # switches JAX to float64
+
+# no options: --help describes the script, anything else is refused
+argparse.ArgumentParser(description=__doc__.split("\n\n")[0], allow_abbrev=False).parse_args()
 
 # The paper's three-mass two-spring system (Sec. 2): H[f, i, j] = x_i / F_j in m/N
 model = fdjax.three_mass()

@@ -96,7 +96,7 @@ def from_reference(par, obj, drive, servo):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], allow_abbrev=False)
     ap.add_argument("--steps", type=int, default=120,
                     help="L-BFGS steps of each robust tuning (default 120)")
     ap.add_argument("--schedule", action="store_true",

@@ -162,7 +162,7 @@ def plot(positions, fixed, pid, retuned, out):
 
 
 if __name__ == "__main__":
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], allow_abbrev=False)
     ap.add_argument("--quick", action="store_true", help="skip the re-tuning")
     ap.add_argument("--out", default="build/headroom_over_travel.png",
                     help="where to write the figure (the README's: "

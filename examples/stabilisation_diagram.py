@@ -39,7 +39,7 @@ def main(out):
 
 
 if __name__ == "__main__":
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], allow_abbrev=False)
     ap.add_argument("--out", default=os.path.join("build", "stabilisation_diagram.png"),
                     help="where to write the figure (default: build/stabilisation_diagram.png "
                          "under the current directory)")

@@ -13,7 +13,7 @@ results (``benchmarks/results/tuning.json``) and, at one position (default 0.1 m
 * what trust-region Newton steps with that exact Hessian (``fdjax.tune_newton``) make of
   the valley.
 
-About 1.5 minutes on 2 cores (the Hessian's program takes most of it to compile).
+About 2 minutes on 2 cores (the Hessian's program takes most of it to compile).
 
 Usage:  python examples/tuning_landscape.py [--results benchmarks/results/tuning.json]
         [--position 0] [--newton-steps 30] [--out landscape.json]
@@ -39,7 +39,7 @@ from tuning import setup  # noqa: E402  (the benchmark's problem, exactly)
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], allow_abbrev=False)
     ap.add_argument("--results", default=os.path.join(HERE, "..", "benchmarks", "results",
                                                       "tuning.json"))
     ap.add_argument("--position", type=int, default=0, help="index into the six positions")
