@@ -458,7 +458,7 @@ _loop_margins_jit = eqx.filter_jit(_loop_margins_traced)
 
 def closed_loop(
     controller: AbstractController,
-    plant: BallScrewDrive | StateSpace | Complex[ArrayLike, "*pos freq 3 2"],
+    plant: BallScrewDrive | StateSpace,
     *,
     servo: Servo = Servo(),
     method: AbstractLoopModel = SampledData(),
@@ -493,7 +493,7 @@ _closed_loop_jit = eqx.filter_jit(_closed_loop_traced)
 
 def check_stability(
     controller: AbstractController,
-    plant: BallScrewDrive | StateSpace | Complex[ArrayLike, "*pos freq 3 2"],
+    plant: BallScrewDrive | StateSpace,
     *,
     servo: Servo = Servo(),
     method: AbstractLoopModel = SampledData(),
@@ -558,7 +558,7 @@ _stability_jit = eqx.filter_jit(_stability_traced)
 
 def gain_headroom(
     controller: AbstractController,
-    plant: BallScrewDrive | StateSpace | Complex[ArrayLike, "*pos freq 3 2"],
+    plant: BallScrewDrive | StateSpace,
     *,
     position_m: Float[ArrayLike, "*pos"] | None = None,
     servo: Servo = Servo(),

@@ -326,6 +326,14 @@ def test_figures_name_their_bad_arguments():
     plt.close("all")
 
 
+def test_reference_pid_names_its_feedforward_gains():
+    """Its own name, not the PIDLoop it builds."""
+    with pytest.raises(ValueError, match=r"`reference_pid\(k_ffv=\.\.\.\)` must be finite"):
+        fdjax.reference_pid(k_ffv=np.nan)
+    with pytest.raises(TypeError, match=r"`reference_pid\(k_ffa=\.\.\.\)` must be a number"):
+        fdjax.reference_pid(k_ffa="x")
+
+
 def test_first_use_inside_a_users_jit_leaks_no_tracer():
     """fdjax loads its modules on first use; when that use is inside a jitted function, the
     module's constants (the default Servo()) were built as tracers of that trace, and the

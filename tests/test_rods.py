@@ -1,5 +1,7 @@
 """Exact rod/shaft receptances against closed forms (wave solution)."""
 
+import re
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -95,3 +97,24 @@ def test_grad_wrt_length_matches_finite_differences():
     h = 1e-5
     fd = (mag(L + h) - mag(L - h)) / (2 * h)
     np.testing.assert_allclose(float(g), float(fd), rtol=1e-6)
+
+
+@pytest.mark.parametrize("kind, kwargs, name, value", [
+    ("axial", {"youngs_modulus": -1e9}, "youngs_modulus", "-1e+09"),
+    ("axial", {"length": -1.0}, "length", "-1"),
+    ("axial", {"density": 0.0}, "density", "0"),
+    ("torsion", {"shear_modulus": np.nan}, "shear_modulus", "nan"),
+    ("torsion", {"diameter": 0.0}, "diameter", "0"),
+])
+def test_solid_rods_name_the_argument_passed(kind, kwargs, name, value):
+    """The error names the constructor called and its own argument, not the Rod field it
+    becomes (a negative E was reported as `Rod(stiffness=...)`, with EA's value)."""
+    args = {"diameter": 0.05, "length": 1.0, **kwargs}
+    with pytest.raises(ValueError, match=rf"`Rod\.{kind}\({name}=\.\.\.\)` must be finite and "
+                                         rf"positive, got {re.escape(value)}$"):
+        getattr(fdjax.Rod, kind)(**args)
+    # and the section's closed forms: EA = E πd²/4, ρJ = ρ πd⁴/32
+    rod = fdjax.Rod.axial(diameter=0.05, length=1.0)
+    np.testing.assert_allclose(float(rod.stiffness), 2.06e11 * np.pi * 0.05**2 / 4, rtol=1e-15)
+    shaft = fdjax.Rod.torsion(diameter=0.05, length=1.0)
+    np.testing.assert_allclose(float(shaft.inertia), 7850.0 * np.pi * 0.05**4 / 32, rtol=1e-15)

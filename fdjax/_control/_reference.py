@@ -12,9 +12,9 @@ from __future__ import annotations
 import math
 
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
-from .._checks import instance
+from .._checks import finite, instance, real_scalar
 from .._drive._model import BallScrewDrive
 from .._drive._reference import reference_drive
 from .._filters import MCM, NotchFilter, PeakFilter
@@ -88,7 +88,8 @@ def reference_controller(drive: BallScrewDrive | None = None,
     return DoubleLoop(200.0, 5400.0, 60.0, k_ffv=1.0, k_ffa=k_ffa, mcm=reference_mcm())
 
 
-def reference_pid(*, k_ffv=0.0, k_ffa=0.0) -> PIDLoop:
+def reference_pid(*, k_ffv: Float[ArrayLike, ""] = 0.0,
+                  k_ffa: Float[ArrayLike, ""] = 0.0) -> PIDLoop:
     r"""The PID of Figs. 16 and 18: the default :class:`fdjax.PIDLoop` gains × 6.2,
 
         C_pid(s) = 6.2 (k_p + k_i/s + k_d s/(1 + s/ω_d)),   ω_d unchanged,
@@ -98,6 +99,8 @@ def reference_pid(*, k_ffv=0.0, k_ffa=0.0) -> PIDLoop:
     and its margin falls to 0.7 dB at 0.7 m.  ``k_ffv`` (A·s/m) and ``k_ffa`` (A·s²/m) are
     the feed-forward gains, e.g. from :func:`rigid_feedforward`.
     """
+    k_ffv, k_ffa = (finite(real_scalar(v, f"reference_pid({n}=...)"), f"reference_pid({n}=...)")
+                    for n, v in (("k_ffv", k_ffv), ("k_ffa", k_ffa)))
     base = PIDLoop()
     s = 6.2
     return PIDLoop(s * base.kp, s * base.ki, s * base.kd, base.wd, k_ffv=k_ffv, k_ffa=k_ffa)

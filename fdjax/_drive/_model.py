@@ -259,7 +259,9 @@ class BallScrewDrive(eqx.Module):
     def coupled_receptance(
         self, position_m: Float[ArrayLike, "*shape"], omega: Complex[ArrayLike, "*shape"]
     ) -> list[list[Complex[Array, "*shape"]]]:
-        """Coupled receptance over (θ1, θ_l, u_l, x_n, x2, x3) by LM-FBS (paper Eq. 1).
+        """Coupled receptance over (θ1, θ_l, u_l, x_n, x2, x3) by LM-FBS (paper Eq. 1),
+        Y_c = Y − Y Bᵀ (B Y Bᵀ + Y_j)⁻¹ B Y (:func:`fdjax.couple`): Y the substructures'
+        receptances side by side, B the nut's compatibility, Y_j the nut joint's receptance.
 
         Returned as a 6×6 nested list of broadcast arrays (see ``fdjax._linalg``).
         """
@@ -269,7 +271,8 @@ class BallScrewDrive(eqx.Module):
 
     def receptance(self, position_m: Float[ArrayLike, "*shape"],
                    omega: Complex[ArrayLike, "*shape"]) -> Complex[Array, "... 3 2"]:
-        """H_M at broadcastable table positions (m) and angular frequencies (rad/s).
+        """H_M (paper Eq. 2: the coupled receptance at the drive's outputs θ1, x2, x3 over its
+        inputs T1, F3) at broadcastable table positions (m) and angular frequencies (rad/s).
 
         Positions must lie inside ``travel_m`` and ω must be finite (real, or complex for a
         pole search); a non-finite result (ω = 0 is the rigid-body pole) is an error.
@@ -281,7 +284,8 @@ class BallScrewDrive(eqx.Module):
     def receptance_entries(
         self, position_m: Float[ArrayLike, "*shape"], omega: Complex[ArrayLike, "*shape"]
     ) -> list[list[Complex[Array, "*shape"]]]:
-        """H_M as a 3×2 nested list of arrays (no interleaving; the fastest form in a jit)."""
+        """H_M (paper Eq. 2) as a 3×2 nested list of arrays (no interleaving; the fastest form
+        in a jit)."""
         fn = "BallScrewDrive.receptance_entries"
         out = self._receptance_entries(*self._check_point(position_m, omega, fn))
         return _checks.finite_tree(out, f"{fn}(...)")

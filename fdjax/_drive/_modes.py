@@ -18,7 +18,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, ArrayLike, Complex, Float
 
 from .. import _checks
 from .._sweep import map_positions
@@ -48,8 +48,8 @@ class DriveModes(eqx.Module):
     phase_deg: Float[Array, "*b n"]
     amplitude: Float[Array, "*b n"]
     prominence: Float[Array, "*b n"]
-    poles: Array
-    shapes: Array
+    poles: Complex[Array, "*b n"]
+    shapes: Complex[Array, "*b n 3"]
 
 
 def _wrap_deg(phi, upper: float = 0.0):
@@ -114,7 +114,7 @@ def _modes_from_fe(fe, out: int, inp: int, n_keep: int) -> DriveModes:
 
 def drive_modes(
     drive: BallScrewDrive,
-    position_m: Float[ArrayLike, ""],
+    position_m: Float[ArrayLike, ""] | Float[ArrayLike, " n"],
     *,
     output: str = "x2",
     input: str = "T1",
@@ -128,6 +128,14 @@ def drive_modes(
     ``residual`` do not enter: every mode of the mesh is analysed); the default entry is
     h21 = x2/T1, the paper's Table 1 and Fig. 12.  Differentiable; a 1-D ``position_m`` runs
     one compiled loop over the positions (returned with a leading axis).
+
+    Args:
+        drive: the drive.
+        position_m: the table position (m), or a 1-D array of them.
+        output, input: the FRF entry whose modal constants (phase, residue) are reported: the
+            output ``"theta1"``, ``"x2"`` or ``"x3"`` over the input ``"T1"`` or ``"F3"``.
+        n_modes: how many of the lowest flexible modes (static).
+        twin: the twin's mesh and nut correction (:class:`fdjax.TwinOptions`).
     """
     fn = "drive_modes"
     out = _channel(output, OUTPUTS, fn, "output")

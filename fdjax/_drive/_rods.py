@@ -61,31 +61,52 @@ class Rod(eqx.Module):
     def axial(
         cls,
         *,
-        diameter,
-        length,
-        youngs_modulus=2.06e11,
-        density=7850.0,
-        loss_factor=0.0,
-        retardation=0.0,
+        diameter: Float[ArrayLike, ""],
+        length: Float[ArrayLike, ""],
+        youngs_modulus: Float[ArrayLike, ""] = 2.06e11,
+        density: Float[ArrayLike, ""] = 7850.0,
+        loss_factor: Float[ArrayLike, ""] = 0.0,
+        retardation: Float[ArrayLike, ""] = 0.0,
     ) -> Rod:
-        """Solid circular rod in axial motion: ``EA = E πd²/4``, ``ρA = ρ πd²/4`` (steel)."""
-        area = jnp.pi * _checks.positive(_scalar(diameter), "Rod.axial(diameter=...)") ** 2 / 4
-        return cls(length, youngs_modulus * area, density * area, loss_factor, retardation)
+        """Solid circular rod in axial motion: ``EA = E πd²/4``, ``ρA = ρ πd²/4``.
+
+        ``diameter`` d and ``length`` in m, ``youngs_modulus`` E in Pa, ``density`` ρ in
+        kg/m³ (steel by default), ``loss_factor`` and ``retardation`` (s) as :class:`Rod`'s."""
+        return cls._solid("axial", 2, diameter, length, ("youngs_modulus", youngs_modulus),
+                          density, loss_factor, retardation)
 
     @classmethod
     def torsion(
         cls,
         *,
-        diameter,
-        length,
-        shear_modulus=7.93e10,
-        density=7850.0,
-        loss_factor=0.0,
-        retardation=0.0,
+        diameter: Float[ArrayLike, ""],
+        length: Float[ArrayLike, ""],
+        shear_modulus: Float[ArrayLike, ""] = 7.93e10,
+        density: Float[ArrayLike, ""] = 7850.0,
+        loss_factor: Float[ArrayLike, ""] = 0.0,
+        retardation: Float[ArrayLike, ""] = 0.0,
     ) -> Rod:
-        """Solid circular shaft in torsion: ``GJ = G πd⁴/32``, ``ρJ = ρ πd⁴/32``."""
-        polar = jnp.pi * _checks.positive(_scalar(diameter), "Rod.torsion(diameter=...)") ** 4 / 32
-        return cls(length, shear_modulus * polar, density * polar, loss_factor, retardation)
+        """Solid circular shaft in torsion: ``GJ = G πd⁴/32``, ``ρJ = ρ πd⁴/32``.
+
+        ``diameter`` d and ``length`` in m, ``shear_modulus`` G in Pa, ``density`` ρ in
+        kg/m³ (steel by default), ``loss_factor`` and ``retardation`` (s) as :class:`Rod`'s."""
+        return cls._solid("torsion", 4, diameter, length, ("shear_modulus", shear_modulus),
+                          density, loss_factor, retardation)
+
+    @classmethod
+    def _solid(cls, kind, power, diameter, length, modulus, density, loss_factor, retardation):
+        """The rod of a solid circular section: the area (power 2, πd²/4) or the polar moment
+        (power 4, πd⁴/32) times the modulus and the density; each argument checked under the
+        name the user passed it by."""
+        where = f"Rod.{kind}({{}}=...)"
+        name, value = modulus
+        d = _checks.positive(_scalar(diameter), where.format("diameter"))
+        section = jnp.pi * d**power / (4 if power == 2 else 32)
+        return cls(_checks.positive(_scalar(length), where.format("length")),
+                   _checks.positive(_scalar(value), where.format(name)) * section,
+                   _checks.positive(_scalar(density), where.format("density")) * section,
+                   _checks.nonnegative(_scalar(loss_factor), where.format("loss_factor")),
+                   _checks.nonnegative(_scalar(retardation), where.format("retardation")))
 
     @property
     def wave_speed(self) -> Float[Array, ""]:

@@ -75,6 +75,7 @@ TABLE_1 = ModalData(
 """The paper's Table 1: modes of h21 (x2/T1) identified at Y_table = 115 mm."""
 
 TABLE_1_POSITION_M = 0.115
+"""Where the paper identified Table 1's modes: Y_table = 115 mm (m)."""
 
 
 TOLERANCES = (0.03, 0.25, 15.0)
@@ -277,6 +278,8 @@ def update_model(
             drive's parameters with their physically plausible bounds.  Positive bounds are
             searched in log space; a bound ≤ 0 makes the search linear.
         position_m: the table position at which the data were measured (m).
+        output, input: the FRF entry the data are of: the output ``"theta1"``, ``"x2"`` or
+            ``"x3"`` over the input ``"T1"`` or ``"F3"`` (default h21 = x2/T1, Table 1's).
         tolerances: (relative frequency, relative damping, phase in degrees) used to normalise
             the residuals; all positive.
         visibility: a model mode can be paired only if its prominence (its share of the FRF at

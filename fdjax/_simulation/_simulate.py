@@ -1,4 +1,4 @@
-r"""Time simulation of the closed feed-drive loop (paper Sec. 4.3, Figs. 16–17).
+r"""Time simulation of the closed feed-drive loop (paper Sec. 5, Figs. 16–17).
 
 :func:`simulate` runs any controller around the drive's twin on a reference motion with the
 method it is given (:class:`fdjax.SampledData`, the loop as the servo runs it, or

@@ -15,7 +15,7 @@ size can leave it:
 * the notch depth ζ_n/ζ_d inside (d_min, 1) by construction: ζ_n = ζ_d d_min^{σ(θ)}, so the
   notch can never turn into a lead element (ζ_n > ζ_d).
 
-The seven filter parameters (paper Sec. 4.2: the peak filter's K, ω, ξ, φ on mode 3 and the
+The seven filter parameters (paper Secs. 4.2 and 5: the peak filter's K, ω, ξ, φ on mode 3 and the
 notch's ω, ζ_n, ζ_d on mode 5) in this normalised form are what the scheduling network outputs.
 The hardware (servo period, delay, motor constant) is not part of θ.
 """
