@@ -26,7 +26,7 @@ FREQ = np.linspace(10.0, 100.0, 5)
         (lambda: fdjax.LumpedModel([[1.0, 0], [0, -1.0]], np.eye(2), np.eye(2)),
          r"LumpedModel\(mass=\.\.\.\)` must be symmetric positive definite"),
         (lambda: fdjax.Rod.axial(diameter=0.03, length=0.0),
-         r"Rod\(length=\.\.\.\)` must be finite and positive, got 0"),
+         r"`Rod\.axial\(length=\.\.\.\)` must be finite and positive, got 0"),
         (lambda: fdjax.Rod.axial(diameter=-0.03, length=1.0),
          r"Rod.axial\(diameter=\.\.\.\)` must be finite and positive, got -0.03"),
         (lambda: fdjax.Screw(length=1.0, diameter=0.03, lead=-0.02),

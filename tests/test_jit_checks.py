@@ -73,7 +73,7 @@ def test_rod_receptance_and_wave_quantities_under_jit():
             jax.jit(lambda a: rod.segment_stiffness(100.0, a)), -0.1)
     _raises(r"`Support\.dynamic_stiffness\(omega=\.\.\.\)` must be finite",
             jax.jit(lambda w: fdjax.Support(stiffness=1e6).dynamic_stiffness(w)), nan)
-    _raises(r"`Rod\(length=\.\.\.\)` must be finite and positive",
+    _raises(r"`Rod\.axial\(length=\.\.\.\)` must be finite and positive",
             jax.jit(lambda L: fdjax.Rod.axial(diameter=0.03, length=L).length), -1.0)
 
 
