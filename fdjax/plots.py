@@ -46,7 +46,7 @@ _UNITS = {
 
 def _vector(value, where: str, what: str) -> np.ndarray:
     """A 1-D, non-empty, finite real array (a scalar becomes one entry)."""
-    arr = np.atleast_1d(np.asarray(value, dtype=float))
+    arr = np.atleast_1d(np.asarray(_checks.numeric(value, where), dtype=float))
     if arr.ndim != 1 or arr.size == 0:
         raise ValueError(f"`{where}` must be {what}: a 1-D array of at least one value, got "
                          f"shape {arr.shape}")
@@ -78,9 +78,9 @@ def _positions_mm(value, fn: str, name: str = "positions_mm") -> np.ndarray:
     return pos
 
 
-def _shaped(value, shape: tuple, where: str, names: str, dtype=None) -> np.ndarray:
+def _shaped(value, shape: tuple, where: str, names: str) -> np.ndarray:
     """An array of exactly ``shape`` (``names`` spells its axes, e.g. "(n_pos, n_freq)")."""
-    arr = np.asarray(value) if dtype is None else np.asarray(value, dtype=dtype)
+    arr = np.asarray(value)
     if arr.shape != tuple(shape):
         raise ValueError(f"`{where}` must have shape {names} = {tuple(shape)}, got {arr.shape}")
     return arr
