@@ -190,7 +190,7 @@ class AbstractController(eqx.Module):
     def law(self, position_m: Float[Array, ""]) -> Law:
         """The law at table position ``position_m`` (m; a fixed controller ignores it)."""
 
-    def check_position(self, position_m, where: str):
+    def check_position(self, position_m: Float[ArrayLike, ""] | None, where: str):
         """The table positions (m) the controller is asked to run at, checked: a fixed
         controller runs anywhere and returns them as they are; a scheduled one checks them
         against the positions it was built for (eagerly where they are concrete, naming
@@ -289,7 +289,7 @@ class DoubleLoop(AbstractController):
             kp=self.kp, kv=self.kv, ki=self.ki, k_ffv=self.k_ffv, k_ffa=self.k_ffa, mcm=self.mcm
         )
 
-    def law(self, position_m=None) -> Law:
+    def law(self, position_m: Float[ArrayLike, ""] | None = None) -> Law:
         """u = G_MCM C_v (k_p r + k_ffv ṙ − k_p x2 − v_m) + k_ffa r̈."""
         kp = self.kp
         speed = Path(
@@ -371,7 +371,7 @@ class PIDLoop(AbstractController):
         """C_pid(s) = k_p + k_i/s + k_d s/(1 + s/ω_d) (A/m) at complex ``s``."""
         return PID(self.kp, self.ki, self.kd, self.wd).transfer(s)
 
-    def law(self, position_m=None) -> Law:
+    def law(self, position_m: Float[ArrayLike, ""] | None = None) -> Law:
         """u = C_pid (r − x2) + k_ffv ṙ + k_ffa r̈."""
         one = jnp.ones(())
         pid = Path({"r": one, "x2": -one}, (PID(self.kp, self.ki, self.kd, self.wd),))

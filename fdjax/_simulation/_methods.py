@@ -35,10 +35,11 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Complex, Float
 
 from .._checks import is_concrete, static_number
 from .._control._blocks import DEFAULT_PADE_ORDER, FILTER_METHODS, pade_order
+from .._control._controllers import AbstractController
 from .._control._interconnect import (
     SampledParts,
     SampledPlant,
@@ -49,6 +50,8 @@ from .._control._interconnect import (
     sampled_closed_loop_matrices,
     sampled_open_loops,
 )
+from .._control._servo import Servo
+from .._drive._twin import StateSpace
 from .._lti import LTI, expm
 from .._results import RESULTS
 from ._lifted import first_bad, growth_rate, lifted_outputs
@@ -69,35 +72,41 @@ class AbstractLoopModel(eqx.Module):
     takes_frf: ClassVar[bool] = True  # open loops from a (measured) FRF array
 
     @abc.abstractmethod
-    def closed_loop(self, controller, plant, servo) -> LTI:
+    def closed_loop(self, controller: AbstractController, plant: StateSpace,
+                    servo: Servo) -> LTI:
         """The closed loop around the twin ``plant`` (inputs r, ṙ, r̈, F3; outputs θ1, x2,
         x3, T1), continuous or discrete."""
 
     @abc.abstractmethod
-    def open_loop_model(self, controller, plant, servo):
+    def open_loop_model(self, controller: AbstractController, plant: StateSpace,
+                        servo: Servo) -> tuple:
         """(L_fn, params): ``L_fn(params, ω)`` gives the open loops at angular frequencies ω as
         a dict (``plant_input``, ``speed``, ``position``; None where the law closes no such
         loop), ``params`` the differentiable data it needs (the model margins refine their
         crossings on it)."""
 
     @abc.abstractmethod
-    def frf_open_loops(self, controller, H, omega, screw_ratio, servo, position_m):
+    def frf_open_loops(self, controller: AbstractController, H: Complex[Array, "*b freq 3 2"],
+                       omega: Float[Array, " freq"], screw_ratio: Float[ArrayLike, ""],
+                       servo: Servo, position_m: Float[ArrayLike, "*b"] | None) -> dict:
         """The open loops from an FRF array H (…, freq, 3, 2) of the plant."""
 
-    def max_freq_hz(self, servo) -> float:
+    def max_freq_hz(self, servo: Servo) -> float:
         """The highest frequency the model's open loops are defined at (Hz)."""
         return math.inf
 
-    def frozen_growth(self, controller, plant, servo):
+    def frozen_growth(self, controller: AbstractController, plant: StateSpace,
+                      servo: Servo) -> Float[Array, ""]:
         """The growth rate (1/s) of the least stable pole of the closed loop around the twin
         ``plant`` (≥ 0: unstable); the models that run a simulation define it."""
         raise NotImplementedError
 
-    def check_use(self, controller, plant, servo, where: str) -> None:
+    def check_use(self, controller: AbstractController, plant: StateSpace | None,
+                  servo: Servo, where: str) -> None:
         """Refuse, eagerly, a use the model cannot serve (``where``: the caller's argument);
         ``plant`` is one twin, a batch of them, or None for a drive or an FRF array."""
 
-    def poles_to_s(self, lam, servo):
+    def poles_to_s(self, lam: Complex[Array, "*b n"], servo: Servo) -> Complex[Array, "*b n"]:
         """Continuous-time equivalents of the closed loop's eigenvalues (1/s)."""
         return lam
 

@@ -171,7 +171,7 @@ class ScheduledLoop(AbstractController):
         lo, hi = self.network.travel_m
         return _checks.inside(position_m, lo, hi, where, "the network's travel")
 
-    def check_position(self, position_m, where: str):
+    def check_position(self, position_m: Float[ArrayLike, ""] | None, where: str):
         """Positions (m) inside the network's travel (:meth:`AbstractController.check_position`)."""
         if position_m is None:
             raise ValueError(f"`{where}` is required: the schedule's law depends on the table "
@@ -212,7 +212,7 @@ class ScheduledLoop(AbstractController):
         }
         return {k: [float(v) for v in jnp.asarray(c)] for k, c in cols.items()}
 
-    def law(self, position_m) -> Law:
+    def law(self, position_m: Float[ArrayLike, ""]) -> Law:
         """The law of :meth:`controller` at the table position."""
         if position_m is None:
             raise ValueError("`ScheduledLoop.law(position_m=...)` needs the table position (m)")
@@ -277,7 +277,7 @@ class InterpolatedLoop(AbstractController):
                                  f"{bad:.6g} mm is {bad / 1000:.6g} m")
         return y
 
-    def check_position(self, position_m, where: str):
+    def check_position(self, position_m: Float[ArrayLike, ""] | None, where: str):
         """Finite positions (m), not in mm (:meth:`AbstractController.check_position`)."""
         if position_m is None:
             raise ValueError(f"`{where}` is required: the interpolated designs depend on the "
@@ -306,7 +306,7 @@ class InterpolatedLoop(AbstractController):
         mcm = self.bounds.to_mcm(self._interpolated(y))
         return eqx.tree_at(lambda c: c.mcm, self.loop, mcm)
 
-    def law(self, position_m) -> Law:
+    def law(self, position_m: Float[ArrayLike, ""]) -> Law:
         """The law of :meth:`controller` at the table position."""
         if position_m is None:
             raise ValueError("`InterpolatedLoop.law(position_m=...)` needs the table position (m)")
