@@ -147,10 +147,6 @@ def _values_split(par, objective, drive, y, theta):
     return jax.vmap(one)(theta, y)
 
 
-_evaluate = eqx.filter_jit(_values)
-_evaluate_split = eqx.filter_jit(_values_split)
-
-
 def _sr1(H, s, y):
     """The symmetric rank-one update of H with the step s and the change of gradient y,
     H + r rᵀ/(r·s), r = y − H s; skipped when |r·s| ≤ 1e-8 ‖r‖ ‖s‖ (or not finite)."""
@@ -161,18 +157,20 @@ def _sr1(H, s, y):
 
 
 def _accept(theta, j, g, H, delta, step, pred, j_t, g_t, H_t, shrink, max_radius, exact: bool,
-            quasi):
+            quasi, first=False):
     """The trial's verdict and the new radius; the model's Hessian: the trial's exact one
     where ``exact`` and the step is accepted, else the SR1 update where ``quasi`` (a boolean,
-    traced or not)."""
+    traced or not).  ``first`` (traced or not): the trial is the start itself (a zero step),
+    taken as it is, the radius kept."""
     ok = jnp.isfinite(j_t) & jnp.all(jnp.isfinite(g_t), axis=1) & jnp.all(
         jnp.isfinite(H_t), axis=(1, 2))
     rho = jnp.where(ok & (pred > 0), (j - j_t) / jnp.where(pred > 0, pred, 1.0), -1.0)
     size = jnp.linalg.norm(step, axis=1)
-    delta = jnp.where(rho < 0.25, shrink * size,
-                      jnp.where((rho > 0.75) & (size > 0.8 * delta),
-                                jnp.minimum(2.0 * delta, max_radius), delta))
-    acc = rho > _ACCEPT
+    new_delta = jnp.where(rho < 0.25, shrink * size,
+                          jnp.where((rho > 0.75) & (size > 0.8 * delta),
+                                    jnp.minimum(2.0 * delta, max_radius), delta))
+    delta = jnp.where(first, delta, new_delta)
+    acc = (rho > _ACCEPT) | first
     pick = lambda a, b: jnp.where(acc.reshape(acc.shape + (1,) * (a.ndim - 1)), a, b)  # noqa: E731
     H_q = jnp.where(quasi, jax.vmap(_sr1)(H, step, g_t - g), H)
     H_new = jnp.where(acc[:, None, None], H_t, H_q) if exact else H_q
@@ -194,16 +192,21 @@ class _Newton(eqx.Module):
     g_m: Array
 
 
-def _step(par, objective, drive, y, st: _Newton, kind: str, quasi, shrink, max_radius):
+def _step(par, objective, drive, y, st: _Newton, kind: str, quasi, shrink, max_radius,
+          first=False):
     """One trust-region step at every position; ``kind``: "exact" (the trial's J, ∇J and
     ∇²J), "gradient" (J and ∇J; the Hessian by SR1 where ``quasi``) or "split" (the margin
-    term's Hessian, SR1 for the rest).  Returns the new iterate and J at the trial."""
+    term's Hessian, SR1 for the rest).  ``first`` (a traced boolean; "exact" and "split"):
+    the step is zero and the iterate takes the start's values, its radius kept (the tuner's
+    start, evaluated in the program of the steps).  Returns the new iterate and J at the
+    trial."""
     step, pred = jax.vmap(_trust_region_step)(st.g, st.H + st.B, st.delta)
+    step = jnp.where(first, 0.0, step)
     trial = st.theta + step
     B, g_m = st.B, st.g_m
     if kind == "split":
         j_t, g_t, g_mt, H_t = _values_split(par, objective, drive, y, trial)
-        B = jax.vmap(_sr1)(B, step, (g_t - g_mt) - (st.g - st.g_m))
+        B = jnp.where(first, B, jax.vmap(_sr1)(B, step, (g_t - g_mt) - (st.g - st.g_m)))
     elif kind == "exact":
         j_t, g_t, H_t = _values(par, objective, drive, y, trial)
     else:
@@ -211,44 +214,49 @@ def _step(par, objective, drive, y, st: _Newton, kind: str, quasi, shrink, max_r
         H_t = st.H
     theta, j, g, H, delta, acc = _accept(st.theta, st.j, st.g, st.H, st.delta, step, pred, j_t,
                                          g_t, H_t, shrink, max_radius, kind != "gradient",
-                                         quasi)
+                                         quasi, first)
     if kind == "split":
         g_m = jnp.where(acc[:, None], g_mt, g_m)
     return _Newton(theta, j, g, H, delta, B, g_m), j_t
 
 
-def _loop_step(par, objective, drive, y, kind, quasi, shrink, max_radius):
+def _loop_step(par, objective, drive, y, kind, quasi, shrink, max_radius, first=False):
     """A ``fori_loop`` body: one :func:`_step` of ``kind``, its trial's J written to row k of
     the history; carry (iterate, history, k)."""
     def body(_, carry):
         st, hist, k = carry
-        st, j_t = _step(par, objective, drive, y, st, kind, quasi, shrink, max_radius)
+        st, j_t = _step(par, objective, drive, y, st, kind, quasi, shrink, max_radius, first)
         return st, hist.at[k].set(j_t), k + 1
     return body
 
 
 @eqx.filter_jit
 def _run_cycles(par, objective, drive, y, st, cycles, shrink, max_radius, every, split: bool,
-                quasi, rows: int):
+                quasi, rows: int, start):
     """``cycles`` cycles of ``every`` − 1 gradient steps and one step with the exact Hessian
     (or, with ``split``, where ``every`` is 1, one step with the margins' Hessian), in one
     compiled loop: what does not depend on θ (the twins, their zero-order holds and responses
-    on the grid, the reference) is computed once, not at every step.  Returns the iterate and J
-    at every trial, (rows, n) (the first cycles·every rows filled).  ``cycles``, ``every`` and
-    ``quasi`` (SR1 updates of the model's Hessian, with ``every`` > 1) are traced: one
-    program for any ``hessian_every`` and count of cycles up to rows/every."""
+    on the grid, the reference) is computed once, not at every step.  With ``start``, a cycle
+    of one zero step comes first: it evaluates J, ∇J and the Hessian at ``st.theta`` (the
+    tuner's start; ``st``'s other values are placeholders).  Returns the iterate and J at
+    every trial, (rows, n) (the first cycles·every rows filled, after J at the start with
+    ``start``).  ``cycles``, ``every``, ``quasi`` (SR1 updates of the model's Hessian, with
+    ``every`` > 1) and ``start`` are traced: one program for any ``hessian_every``, count of
+    cycles up to rows/every and the start."""
 
-    def run(kind):
-        return _loop_step(par, objective, drive, y, kind, quasi, shrink, max_radius)
-
-    def cycle(_, carry):
+    def cycle(c, carry):
+        first = start & (c == 0)
         if split:
-            return run("split")(0, carry)
-        carry = jax.lax.fori_loop(0, every - 1, run("gradient"), carry)
-        return run("exact")(0, carry)
+            return _loop_step(par, objective, drive, y, "split", quasi, shrink, max_radius,
+                              first)(0, carry)
+        carry = jax.lax.fori_loop(0, jnp.where(first, 0, every - 1), _loop_step(
+            par, objective, drive, y, "gradient", quasi, shrink, max_radius), carry)
+        return _loop_step(par, objective, drive, y, "exact", quasi, shrink, max_radius,
+                          first)(0, carry)
 
     hist = jnp.zeros((rows,) + st.j.shape, st.j.dtype)
-    st, hist, _ = jax.lax.fori_loop(0, cycles, cycle, (st, hist, jnp.asarray(0)))
+    st, hist, _ = jax.lax.fori_loop(0, cycles + start.astype(cycles.dtype), cycle,
+                                    (st, hist, jnp.asarray(0)))
     return st, hist
 
 
@@ -354,48 +362,54 @@ def tune_newton(
                          f"margins' Hessian is exact at every step), got {hessian_every!r}")
     theta = jnp.asarray(_start(fn, parameterisation, start, pos.size))
     y = jnp.asarray(pos)
-    if split:
-        # the model's Hessian: H (the margins', exact) + B (the rest of J's, SR1 from zero)
-        j, g, g_m, H = _evaluate_split(parameterisation, objective, drive, y, theta)
-        B = jnp.zeros_like(H)
-    else:
-        j, g, H = _evaluate(parameterisation, objective, drive, y, theta)
-        g_m, B = jnp.zeros_like(g), jnp.zeros_like(H)
-    # no weak types: the first call's iterate is typed as the calls' results, one program
-    st = _settled(_Newton(theta, j, g, H, jnp.full(pos.size, float(radius)), B, g_m))
+    p = theta.shape[1]
+    # J, ∇J and the model's Hessian at the start are evaluated by the first call of the steps'
+    # program (a zero first step), not in a program of their own: until then placeholders.
+    # With "margins", H is the margins' Hessian (exact) and B the rest of J's (SR1 from zero).
+    # No weak types: the first call's iterate is typed as the calls' results, one program.
+    zeros = jnp.zeros((pos.size, p, p))
+    st = _settled(_Newton(theta, jnp.zeros(pos.size), jnp.zeros((pos.size, p)), zeros,
+                          jnp.full(pos.size, float(radius)), zeros, jnp.zeros((pos.size, p))))
     trust = dict(shrink=jnp.asarray(float(shrink)), max_radius=jnp.asarray(float(max_radius)))
     every = hessian_every
     # whole cycles of `every` steps per call where they fit in a chunk; else calls of gradient
     # steps and the exact step alone
     cycles_per_call = -(-chunk // every) if every <= chunk else 0
     # the cycles' history: rows for any hessian_every up to max(chunk, every), so that one
-    # program serves every hessian_every and the exact step alone (cycles·every ≤ chunk +
-    # every − 1)
+    # program serves every hessian_every and the exact step alone (the start and cycles·every
+    # ≤ chunk + every − 1 steps)
     rows = 2 * max(chunk, every)
-    history = [np.asarray(j)[None]]
+
+    def cycles(st, n_cycles, every, split, quasi, start):
+        return _run_cycles(parameterisation, objective, drive, y, st, jnp.asarray(n_cycles),
+                           every=jnp.asarray(every), split=split, quasi=jnp.asarray(quasi),
+                           rows=rows, start=jnp.asarray(start), **trust)
+
+    history = []
     seen, t_later, later_steps = set(), 0.0, 0
     done = 0
+    started = not (cycles_per_call and steps >= every)
+    if started:  # the first call runs gradient steps: the start alone first
+        st, hist = cycles(st, 0, 1, False, False, True)
+        history.append(np.asarray(hist)[:1])
+        seen.add("exact")
     while done < steps:
         t0 = time.perf_counter()
         exact_at = done + (every - 1 - done % every)  # the next step with the exact Hessian
         if cycles_per_call and done % every == 0 and steps - done >= every:
             n_cycles = min(cycles_per_call, (steps - done) // every)
-            st, hist = _run_cycles(parameterisation, objective, drive, y, st,
-                                   jnp.asarray(n_cycles), every=jnp.asarray(every),
-                                   split=split, quasi=jnp.asarray(every > 1), rows=rows,
-                                   **trust)
+            st, hist = cycles(st, n_cycles, every, split, every > 1, not started)
             n, program = n_cycles * every, "cycles"
         elif done == exact_at:  # one cycle of one step: the exact step alone
-            st, hist = _run_cycles(parameterisation, objective, drive, y, st, jnp.asarray(1),
-                                   every=jnp.asarray(1), split=False, quasi=jnp.asarray(True),
-                                   rows=rows, **trust)
+            st, hist = cycles(st, 1, 1, False, True, False)
             n, program = 1, "exact"
         else:
             n = min(exact_at, steps, done + chunk) - done
             st, hist = _run_gradient_steps(parameterisation, objective, drive, y, st,
                                            jnp.asarray(n), rows=min(every - 1, chunk), **trust)
             program = "gradient"
-        history.append(np.asarray(hist)[:n])  # waits for the steps
+        history.append(np.asarray(hist)[:n + (not started)])  # waits for the steps
+        started = True
         if program in seen:  # the first call of each program may compile it
             t_later += time.perf_counter() - t0
             later_steps += n
