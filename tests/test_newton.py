@@ -133,6 +133,15 @@ def test_tune_newton_lowers_the_objective_with_the_exact_hessian():
     assert np.all(np.asarray(sr1.terms.total) < 0.6 * np.asarray(sr1.history)[0])  # 0.57, 0.17
     # its start, evaluated alone (the steps' program with no step), is the same program's
     np.testing.assert_array_equal(np.asarray(sr1.history)[0], h[0])
+    # the exact Hessian at the start only (hessian_every past the steps): the start alone,
+    # then gradient steps with SR1 updates, in the programs above (its history is sized by
+    # the steps, not by hessian_every: 10⁹ rows had been allocated)
+    with compilations() as names:
+        only = fdjax.tune_newton(par, obj, drive, pos, start, steps=2, hessian_every=10**9,
+                                 chunk=1)
+    assert not [n for n in names if "_run" in n], names
+    np.testing.assert_array_equal(np.asarray(only.history)[0], h[0])
+    assert np.all(np.asarray(only.terms.total) < h[0])
     # with a chunk of whole cycles, cycles of two steps run in one compiled loop whose count
     # is traced, and the step after them in the loop of gradient steps: five steps repeat the
     # four above in the programs compiled above, equal to round-off (measured 1.5e-8

@@ -213,10 +213,11 @@ def simulate(
         duration = getattr(reference, "duration", None)
         if duration is None:
             raise ValueError(f"`{fn}(duration=...)` is required for this reference")
-        knots = getattr(reference, "t_knots", None)
-        if not _checks.is_concrete(duration) and knots is not None and _checks.is_concrete(knots):
-            # inside jit, indexing a closed-over trajectory is staged: read its end on the host
-            duration = float(np.asarray(knots)[-1])
+        h = getattr(reference, "durations", None)
+        if not _checks.is_concrete(duration) and h is not None and _checks.is_concrete(h):
+            # inside jit, a closed-over trajectory's sums are staged: add its segments' durations
+            # on the host, in order (as Trajectory.t_knots does)
+            duration = float(np.cumsum(np.asarray(h))[-1])
     if not _checks.is_concrete(duration):
         if given:
             raise ValueError(f"`{fn}(duration=...)` must be a concrete number (it sets the "

@@ -375,10 +375,11 @@ def tune_newton(
     # whole cycles of `every` steps per call where they fit in a chunk; else calls of gradient
     # steps and the exact step alone
     cycles_per_call = -(-chunk // every) if every <= chunk else 0
-    # the cycles' history: rows for any hessian_every up to max(chunk, every), so that one
-    # program serves every hessian_every and the exact step alone (the start and cycles·every
-    # ≤ chunk + every − 1 steps)
-    rows = 2 * max(chunk, every)
+    # the cycles' history: a call of whole cycles fills the start's row and cycles·every ≤
+    # chunk + every − 1 rows, the exact step alone or the start alone one.  Rows for
+    # hessian_every up to max(chunk, every) let one program serve such hessian_every and the
+    # exact step alone; past the steps (the exact Hessian at the start only) no cycle runs.
+    rows = 2 * max(chunk, min(every, steps))
 
     def cycles(st, n_cycles, every, split, quasi, start):
         return _run_cycles(parameterisation, objective, drive, y, st, jnp.asarray(n_cycles),
