@@ -27,11 +27,12 @@ H ≈ ∇²J_m + B.  Each step then runs one simulation with its gradient per po
 
 The steps run in compiled loops (whole cycles of ``hessian_every`` steps per call where a cycle
 fits in a call's ``chunk`` of steps, else calls of gradient steps and the exact step alone), so
-that what does not depend on θ, the twins at the positions, their zero-order holds and responses on
-the frequency grid and the reference's samples, is computed once per call instead of at every
-evaluation (on the reference drive's 12-parameter problem a step with the exact Hessian then
-costs about half, one with the gradient alone about 0.45× of the same step called alone;
-``benchmarks/tuning.py``).
+that what does not depend on θ, the twins at the positions, their zero-order holds and
+responses on the frequency grid and the reference's samples, is computed once per call instead
+of at every evaluation (on the reference drive's 12-parameter problem a step with the exact
+Hessian then costs about half, one with the gradient alone about 0.45× of the same step called
+alone; ``benchmarks/tuning.py``).  The start is evaluated by the first call, as a zero first
+step, not by a program of its own (which took two fifths of a first call's compilation).
 """
 
 from __future__ import annotations
@@ -375,11 +376,10 @@ def tune_newton(
     # whole cycles of `every` steps per call where they fit in a chunk; else calls of gradient
     # steps and the exact step alone
     cycles_per_call = -(-chunk // every) if every <= chunk else 0
-    # the cycles' history: a call of whole cycles fills the start's row and cycles·every ≤
-    # chunk + every − 1 rows, the exact step alone or the start alone one.  Rows for
-    # hessian_every up to max(chunk, every) let one program serve such hessian_every and the
-    # exact step alone; past the steps (the exact Hessian at the start only) no cycle runs.
-    rows = 2 * max(chunk, min(every, steps))
+    # the cycles' history: a call of whole cycles (every ≤ chunk) fills the start's row and
+    # cycles·every ≤ chunk + every − 1 ≤ 2·chunk − 1 rows, the exact step alone or the start
+    # alone one: 2·chunk rows, one program for any hessian_every and count of steps
+    rows = 2 * chunk
 
     def cycles(st, n_cycles, every, split, quasi, start):
         return _run_cycles(parameterisation, objective, drive, y, st, jnp.asarray(n_cycles),
