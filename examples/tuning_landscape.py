@@ -9,11 +9,12 @@ results (``benchmarks/results/tuning.json``) and, at one position (default 0.1 m
 * J on the straight segment from L-BFGS's design to Nelder–Mead's (is there a ridge between
   them, i.e. another basin, or is the segment downhill?);
 * the spectrum of the Hessian ∇²J at L-BFGS's design (``jax.hessian``, forward over reverse):
-  its condition and its negative curvature;
+  its condition and its negative curvature, and the spectra of its two parts, the margin
+  penalties (``Objective.margin_term``) and the simulated terms (``Objective.simulated_term``);
 * what trust-region Newton steps with that exact Hessian (``fdjax.tune_newton``) make of
   the valley.
 
-About 2 minutes on 2 cores (the Hessian's program takes most of it to compile).
+About 2 minutes on 2 cores (the Hessians' programs take most of it to compile).
 
 Usage:  python examples/tuning_landscape.py [--results benchmarks/results/tuning.json]
         [--position 0] [--newton-steps 30] [--out landscape.json]
@@ -93,6 +94,17 @@ def main():
     print("  Hessian eigenvalues at L-BFGS's design:", " ".join(f"{x:.3g}" for x in w))
     pos = w[w > 0]
     print(f"  positive ones span {pos.max() / pos.min():.3g}; {int(np.sum(w < 0))} negative")
+    # whose walls: J = J_m + J_s, the margin penalties (the open loops on the frequency grid,
+    # no simulation) and the rest (the simulated tracking error and the barriers)
+    for key, name, term in (("margin_term", "margin penalties'", obj.margin_term),
+                            ("simulated_term", "simulated terms'", obj.simulated_term)):
+        h_t = np.asarray(eqx.filter_jit(jax.hessian(
+            lambda th, term=term: term(par.to_controller(th), drive, y)))(
+                jnp.asarray(theta["lbfgs"])))
+        w_t = np.linalg.eigvalsh(0.5 * (h_t + h_t.T))
+        out["hessian_at_lbfgs"][key] = w_t.tolist()
+        print(f"  the {name} Hessian there, its three largest: "
+              + " ".join(f"{x:.3g}" for x in w_t[::-1][:3]))
     # trust-region Newton steps with that exact Hessian from L-BFGS's design
     r_newton = fdjax.tune_newton(par, obj, drive, np.array([y]), theta["lbfgs"],
                                  steps=args.newton_steps)

@@ -296,18 +296,18 @@ def tune_newton(
     Each step evaluates J, its gradient and its Hessian once per position (the Hessian's p
     columns are forward-mode derivatives of the reverse-mode gradient: 2p + 2 passes, p = 12
     for :class:`fdjax.DoubleLoopParameterisation`; on the reference drive a step with it
-    costs as much as five to eight with the gradient alone, 69–78 against 8–15 ms for six
+    costs as much as five to nine with the gradient alone, 69–90 against 8–15 ms for six
     positions).  On the 12-parameter local problem it reaches lower objectives than
     first-order steps, and than the adaptive simplex given 1500 evaluations per position;
     with ``hessian_every=8`` in less wall time than the simplex compiled as this tuner is
-    (:func:`fdjax.tune_simplex`, 1.1–1.4× in two runs), with the exact Hessian at every step in more
-    (``benchmarks/tuning.py``); it stops in the minimum its trust region leads to, and a
-    simplex run for 8× longer ends lower at four of six positions
-    (``benchmarks/tuning_converged.py``).  There, a larger initial ``radius``
-    (1 or 3) reached the simplex's best as well in about as many steps, ``hessian_every`` = 20
-    took more steps than 8 and "the start only" missed three positions, and
-    ``hessian="margins"`` 10× fewer simulations than the simplex but less time saved than the
-    exact Hessian (``benchmarks/tuning_variants.py``).  For many parameters (a network) use
+    (:func:`fdjax.tune_simplex`, 1.1–1.4× in four runs), with the exact Hessian at every step
+    in more (``benchmarks/tuning.py``); it stops in the minimum its trust region leads to, and
+    a simplex run for 8× longer ends lower at four of six positions
+    (``benchmarks/tuning_converged.py``).  In ``benchmarks/tuning_variants.py`` an initial
+    ``radius`` of 3 reached the simplex's best as well in about as many steps (1 missed one
+    position), ``hessian_every`` = 20 missed two positions and "the start only" three, and
+    ``hessian="margins"`` took 10× fewer simulations than the simplex but saved less time than
+    the exact Hessian.  For many parameters (a network) use
     :func:`fdjax.train_schedule`.  The Hessian is exact for the tracking error and the margin
     penalties; the growth-rate barrier's second derivative holds the dominant eigenspace
     fixed (its gradient is exact), which the acceptance test ρ absorbs.
