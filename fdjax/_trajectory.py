@@ -95,7 +95,8 @@ class Trajectory(eqx.Module):
     late in a long sequence (:func:`concatenate`, many cycles of :func:`reciprocating`) is the
     same move, ending at rest where it should (lengths recovered as differences of large knot
     times are off by their rounding, ~εt, and the error grows with the time: 1.4 µm after
-    1000 cycles of 0.3 m strokes).  ``t_knots`` is their running sum.
+    1000 cycles of 0.3 m strokes).  ``t_knots`` is their running sum, which may differ from
+    knot times given to the constructor by their rounding (a few ulps).
 
     The knot states are not stored either: ``evaluate`` integrates them (O(k), one sequential
     scan), then locates each time with ``searchsorted`` (O(log k); O(k) compares for k ≤ 64,
@@ -239,15 +240,17 @@ def _knot_states(traj: Trajectory):
 def _evaluate(traj: Trajectory, t: Float[Array, "*t"]):
     """The body of ``Trajectory.evaluate``, compiled once per structure and shape of ``t``."""
     rk, vk, ak = _knot_states(traj)
+    tk = traj.t_knots
+    T = tk[-1]
     k = traj.num_segments
     # One row per segment, gathered once: (t_i, r_i, v_i, a_i, j_i).
-    rows = jnp.stack([traj.t_knots[:-1], rk[:-1], vk[:-1], ak[:-1], traj.jerk], axis=-1)
-    tc = jnp.clip(t, 0.0, traj.duration)
+    rows = jnp.stack([tk[:-1], rk[:-1], vk[:-1], ak[:-1], traj.jerk], axis=-1)
+    tc = jnp.clip(t, 0.0, T)
     # The last segment starting at or before tc (zero-length segments are skipped). For the
     # few knots of a move, comparing with all of them (O(k) per time) compiles fastest; long
     # sequences use the binary search (O(log k)).
     method = "compare_all" if k <= _COMPARE_ALL_MAX else "scan_unrolled"
-    i = jnp.searchsorted(traj.t_knots, tc, side="right", method=method) - 1
+    i = jnp.searchsorted(tk, tc, side="right", method=method) - 1
     row = rows[jnp.clip(i, 0, k - 1)]
     tau = tc - row[..., 0]
     ri, vi, ai, ji = row[..., 1], row[..., 2], row[..., 3], row[..., 4]
@@ -255,7 +258,7 @@ def _evaluate(traj: Trajectory, t: Float[Array, "*t"]):
     v = vi + tau * (ai + tau * ji / 2)
     a = ai + tau * ji
     # At rest outside [0, T]: r is already held by the clip; v, a, j are switched off.
-    moving = ((t >= 0.0) & (t <= traj.duration)).astype(t.dtype)
+    moving = ((t >= 0.0) & (t <= T)).astype(t.dtype)
     return r, v * moving, a * moving, ji * moving
 
 
@@ -319,9 +322,10 @@ def _double_s_durations(h: float, v: float, a: float, j: float) -> tuple[float, 
     # rounding can fall a few ulps below zero, so it is clamped at 0
     if h >= reach:
         return tj, max(ta - 2.0 * tj, 0.0), (h - reach) / v
-    if h >= 2.0 * a * (a / j) * (a / j):  # 2a³/j², written so that nothing overflows
+    c = a * (a / j)  # a²/j, written (as 2a³/j² below) so that nothing overflows needlessly
+    if h >= 2.0 * c * (a / j):
         # v_p²/a + v_p a/j − h = 0; the root is well conditioned (√(a⁴/j² + 4ha) ≥ 3a²/j).
-        vp = (math.sqrt((a * a / j) ** 2 + 4.0 * h * a) - a * a / j) / 2.0
+        vp = (math.sqrt(c * c + 4.0 * h * a) - c) / 2.0
         tj = a / j
         return tj, max(vp / a - tj, 0.0), 0.0
     return (h / (2.0 * j)) ** (1.0 / 3.0), 0.0, 0.0
@@ -423,7 +427,10 @@ def concatenate(*trajectories: Trajectory) -> Trajectory:
                 f"by another, got final velocity {float(vk[-1]):.6g} m/s and acceleration "
                 f"{float(ak[-1]):.6g} m/s²"
             )
-    return _from_durations(jnp.concatenate([traj.durations for traj in trajectories]),
+    durations = check(jnp.concatenate([traj.durations for traj in trajectories]),
+                      lambda h: jnp.isfinite(h) & (h >= 0), "concatenate(*trajectories)",
+                      "made of segments of finite, non-negative durations")
+    return _from_durations(durations,
                            jnp.concatenate([traj.jerk for traj in trajectories]),
                            trajectories[0].r0)
 

@@ -137,6 +137,12 @@ def test_moves_on_a_limits_boundary():
         traj = jerk_limited(h, v, a, j)
         np.testing.assert_allclose(float(traj.duration), 4 * (h / (2 * j)) ** (1 / 3),
                                    rtol=1e-15)
+    # a reached, v not, with a⁴/j² beyond floating point (a²/j = 1e20 is not): T = a/j +
+    # √(a²/j² + 4h/a) (it gave a NaN duration)
+    h, a, j = 1e-3, 1e160, 1e300
+    traj = jerk_limited(h, 1e100, a, j)
+    np.testing.assert_allclose(float(traj.duration), a / j + np.sqrt((a / j) ** 2 + 4 * h / a),
+                               rtol=1e-15)
 
 
 def test_mirror_dwell_and_null_move():
@@ -300,6 +306,12 @@ def test_concatenate_and_rest_check():
     ramp = Trajectory(t_knots=[0.0, 1.0], jerk=[1.0])
     with pytest.raises(ValueError, match=r"`concatenate\(\*trajectories\)`: trajectory 0 must end"):
         concatenate(ramp, one)
+    # a piece whose durations were edited to what no constructor makes
+    bad = eqx.tree_at(lambda t: t.durations, two, two.durations.at[3].set(-1.0))
+    with pytest.raises(ValueError, match=r"`concatenate\(\*trajectories\)` must be made of "
+                                         r"segments of finite, non-negative durations, got -1 "
+                                         r"at index 11"):
+        concatenate(one, bad)
     with pytest.raises(ValueError, match=r"needs at least one Trajectory"):
         concatenate()
     with pytest.raises(ValueError, match=r"takes Trajectory objects, got str at position 1"):

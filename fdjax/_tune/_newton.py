@@ -242,8 +242,8 @@ def _run_cycles(par, objective, drive, y, st, cycles, shrink, max_radius, every,
     tuner's start; ``st``'s other values are placeholders).  Returns the iterate and J at
     every trial, (rows, n) (the first cycles·every rows filled, after J at the start with
     ``start``).  ``cycles``, ``every``, ``quasi`` (SR1 updates of the model's Hessian, with
-    ``every`` > 1) and ``start`` are traced: one program for any ``hessian_every``, count of
-    cycles up to rows/every and the start."""
+    ``every`` > 1) and ``start`` are traced: one program for any ``hessian_every`` and count
+    of cycles that fit in ``rows`` with the start's row."""
 
     def cycle(c, carry):
         first = start & (c == 0)
@@ -296,12 +296,12 @@ def tune_newton(
     Each step evaluates J, its gradient and its Hessian once per position (the Hessian's p
     columns are forward-mode derivatives of the reverse-mode gradient: 2p + 2 passes, p = 12
     for :class:`fdjax.DoubleLoopParameterisation`; on the reference drive a step with it
-    costs as much as five to nine with the gradient alone, 69–90 against 8–15 ms for six
+    costs as much as five to ten with the gradient alone, 69–90 against 8–15 ms for six
     positions).  On the 12-parameter local problem it reaches lower objectives than
     first-order steps, and than the adaptive simplex given 1500 evaluations per position;
     with ``hessian_every=8`` in less wall time than the simplex compiled as this tuner is
-    (:func:`fdjax.tune_simplex`, 1.1–1.4× in four runs), with the exact Hessian at every step
-    in more (``benchmarks/tuning.py``); it stops in the minimum its trust region leads to, and
+    (:func:`fdjax.tune_simplex`, 1.1–1.4× over the runs), with the exact Hessian at every
+    step in more (``benchmarks/tuning.py``); it stops in the minimum its trust region leads to, and
     a simplex run for 8× longer ends lower at four of six positions
     (``benchmarks/tuning_converged.py``).  In ``benchmarks/tuning_variants.py`` an initial
     ``radius`` of 3 reached the simplex's best as well in about as many steps (1 missed one
@@ -409,6 +409,7 @@ def tune_newton(
             st, hist = _run_gradient_steps(parameterisation, objective, drive, y, st,
                                            jnp.asarray(n), rows=min(every - 1, chunk), **trust)
             program = "gradient"
+        assert n + (not started) <= rows  # (a write past the history would be dropped)
         history.append(np.asarray(hist)[:n + (not started)])  # waits for the steps
         started = True
         if program in seen:  # the first call of each program may compile it
