@@ -160,7 +160,20 @@ def test_tune_newton_lowers_the_objective_with_the_exact_hessian():
     # fixed: 1–6 % off at 0.3 m, measured); the weight is a leaf, nothing recompiles
     theta = jnp.asarray(r.theta)
     y = jnp.asarray(pos)
-    jax.block_until_ready(_evaluate(par, obj, drive, y, theta))  # compiled with the barrier
+    # one step is the trust-region step from the start's J, gradient and Hessian with the
+    # initial radius 0.3 (the zero first step before it took the start and kept the radius):
+    # here rejected at 0.115 m (J 7.87 → 98.9 at the trial), accepted at 0.3 m
+    theta0 = jnp.broadcast_to(par.from_controller(start), (2, 12))
+    j0, g0, H0 = _evaluate(par, obj, drive, y, theta0)  # (compiled with the barrier)
+    np.testing.assert_allclose(np.asarray(j0), h[0], rtol=5e-11)
+    one = fdjax.tune_newton(par, obj, drive, pos, start, steps=1, chunk=2)
+    trial = np.asarray(one.history)[1]
+    assert trial[0] > h[0, 0] and trial[1] < h[0, 1], (h[0], trial)
+    for i, accepted in enumerate((False, True)):
+        p = np.asarray(trust_region_step(g0[i], H0[i], 0.3)[0])
+        want = np.asarray(theta0[i]) + (p if accepted else 0.0)
+        # two programs' rounding (measured 9e-16; θ is of order one)
+        np.testing.assert_allclose(np.asarray(one.theta[i]), want, rtol=0, atol=1e-13)
     # (a float64 array, as Objective's converter makes it: a weakly typed 0.0 would compile anew)
     obj = eqx.tree_at(lambda o: o.stability_weight, obj, jnp.asarray(0.0, jnp.float64))
     with compilations() as names:
@@ -197,6 +210,7 @@ def test_tune_newton_with_the_margins_hessian():
         obj.margin_term(c, drive, 115.0)
     j, g, g_m, H_m = _evaluate_split(par, obj, drive, y, theta)
     j_full, g_full, _ = _evaluate(par, obj, drive, y, theta)
+    # (the run below starts from these values, evaluated in its own program)
     np.testing.assert_allclose(np.asarray(j), np.asarray(j_full), rtol=1e-12)
     np.testing.assert_allclose(np.asarray(g), np.asarray(g_full), rtol=1e-9, atol=1e-12)
     quiet = eqx.tree_at(lambda o: (o.error_scale_m, o.stability_weight, o.current_weight), obj,
@@ -209,6 +223,7 @@ def test_tune_newton_with_the_margins_hessian():
     r = fdjax.tune_newton(par, obj, drive, pos, start, steps=4, hessian="margins")
     h = np.asarray(r.history)
     assert h.shape == (5, 2) and np.all(np.isfinite(h))
+    np.testing.assert_allclose(h[0], np.asarray(j_full), rtol=5e-11)
     print("J", h[0], "->", np.asarray(r.terms.total))
     assert np.all(np.asarray(r.terms.total) < 0.65 * h[0]), (h[0], r.terms.total)  # 0.57, 0.21
     assert np.all(np.asarray(r.terms.stable))
