@@ -435,6 +435,36 @@ def test_a_twin_of_a_non_physical_drive_is_refused():
         fdjax.state_space(drive, 0.3)
 
 
+def test_a_bore_as_wide_as_the_screw_is_refused_under_vmap_and_tree_at():
+    """A traced bore skips the constructor's check; the twin of a bore at least as wide as the
+    screw was NaN matrices without a word (under vmap) and the FRF's error named a Rod.  The
+    twin and the screw's rods now check it, under vmap and jit and after eqx.tree_at (eagerly,
+    with the values, where the screw is concrete)."""
+    drive = fdjax.reference_drive()
+    opts = fdjax.TwinOptions(kept_modes=6)
+    d = float(drive.screw.diameter)
+
+    def bored(b):
+        return eqx.tree_at(lambda dr: dr.screw.bore_diameter, drive, b)
+
+    match = r"`Screw\(bore_diameter=\.\.\.\)` must be smaller than the diameter"
+    ok = jax.vmap(lambda b: fdjax.state_space(bored(b), 0.3, twin=opts).A)(jnp.array([0.03]))
+    assert np.all(np.isfinite(ok))
+    for b in (d, 1.2 * d):
+        with pytest.raises(eqx.EquinoxRuntimeError, match=match):
+            jax.block_until_ready(jax.vmap(lambda b: fdjax.state_space(
+                bored(b), 0.3, twin=opts).A)(jnp.array([0.03, b])))
+        with pytest.raises(eqx.EquinoxRuntimeError, match=match):
+            jax.block_until_ready(eqx.filter_jit(lambda b: bored(b).frf(
+                0.3, FREQ))(jnp.asarray(b)))
+        with pytest.raises(eqx.EquinoxRuntimeError, match=match):  # the FRF's program
+            bored(jnp.asarray(b)).frf(0.3, FREQ)
+        with pytest.raises(ValueError, match=match + rf" {d:g} m, got {b:g}"):  # eager
+            bored(jnp.asarray(b)).screw.torsion()
+    # a concrete drive's modes are counted eagerly inside a trace: no check is staged there
+    assert fdjax.count_modes(bored(jnp.asarray(0.03))) >= 1
+
+
 def test_identify_modes_without_an_order_inside_jit_says_what_to_give():
     """The order is chosen eagerly (the stabilisation diagram); traced data used to fail with
     JAX's TracerArrayConversionError."""

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Complex, Float
 
 from .. import _checks
@@ -118,12 +119,21 @@ class Screw(eqx.Module):
         # lengths in metres: a concrete value beyond what any ball screw has was given in mm
         for name, limit, reason in _SCREW_SIZES:
             _checks.at_most(getattr(self, name), limit, f"Screw({name}=...)", reason)
+        self.checked()
+
+    def checked(self) -> Screw:
+        """This screw, its bore checked narrower than the screw: eagerly where both are
+        concrete (as the constructor does), else by an ``eqx.error_if`` on the bore that flows
+        on (a screw traced under ``vmap``/``jit``, or changed by ``eqx.tree_at``, whose
+        section would be negative, then NaN)."""
         d, di = self.diameter, self.bore_diameter
-        if _checks.is_concrete(d) and _checks.is_concrete(di) and not float(di) < float(d):
-            raise ValueError(
-                f"`Screw(bore_diameter=...)` must be smaller than the diameter "
-                f"{float(d):.6g} m, got {float(di):.6g}"
-            )
+        where = "`Screw(bore_diameter=...)` must be smaller than the diameter"
+        if _checks.is_concrete(d) and _checks.is_concrete(di):
+            if not np.all(np.asarray(di) < np.asarray(d)):
+                raise ValueError(f"{where} {_checks.fmt(d)} m, got {_checks.fmt(di)}")
+            return self
+        return eqx.tree_at(lambda s: s.bore_diameter, self,
+                           eqx.error_if(di, jnp.any(jnp.logical_not(di < d)), where))
 
     @property
     def ratio(self) -> Float[Array, ""]:
@@ -141,12 +151,12 @@ class Screw(eqx.Module):
 
     def torsion(self) -> Rod:
         """The screw in torsion: a :class:`fdjax.Rod` with Z = GJ, μ = ρJ."""
-        gj, rho_j, _, _ = self.section()
+        gj, rho_j, _, _ = self.checked().section()
         return Rod(self.length, gj, rho_j, self.loss_factor, self.retardation)
 
     def axial(self) -> Rod:
         """The screw in axial motion: a :class:`fdjax.Rod` with Z = EA, μ = ρA."""
-        _, _, ea, rho_a = self.section()
+        _, _, ea, rho_a = self.checked().section()
         return Rod(self.length, ea, rho_a, self.loss_factor, self.retardation)
 
 
