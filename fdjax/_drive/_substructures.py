@@ -119,9 +119,9 @@ class Screw(eqx.Module):
         # lengths in metres: a concrete value beyond what any ball screw has was given in mm
         for name, limit, reason in _SCREW_SIZES:
             _checks.at_most(getattr(self, name), limit, f"Screw({name}=...)", reason)
-        self.checked()
+        self._checked()
 
-    def checked(self) -> Screw:
+    def _checked(self) -> Screw:
         """This screw, its bore checked narrower than the screw: eagerly where both are
         concrete (as the constructor does), else by an ``eqx.error_if`` on the bore that flows
         on (a screw traced under ``vmap``/``jit``, or changed by ``eqx.tree_at``, whose
@@ -151,12 +151,12 @@ class Screw(eqx.Module):
 
     def torsion(self) -> Rod:
         """The screw in torsion: a :class:`fdjax.Rod` with Z = GJ, μ = ρJ."""
-        gj, rho_j, _, _ = self.checked().section()
+        gj, rho_j, _, _ = self._checked().section()
         return Rod(self.length, gj, rho_j, self.loss_factor, self.retardation)
 
     def axial(self) -> Rod:
         """The screw in axial motion: a :class:`fdjax.Rod` with Z = EA, μ = ρA."""
-        _, _, ea, rho_a = self.checked().section()
+        _, _, ea, rho_a = self._checked().section()
         return Rod(self.length, ea, rho_a, self.loss_factor, self.retardation)
 
 

@@ -505,11 +505,11 @@ def _check_inputs(drive: BallScrewDrive, position_m, fn: str) -> tuple[BallScrew
 
 def _check_time_domain(drive: BallScrewDrive, fn: str) -> BallScrewDrive:
     """A drive with a time-domain realisation: the screw's loss factor η must be 0 (and its
-    bore narrower than the screw, :meth:`Screw.checked`, checked where the FE model is built
+    bore narrower than the screw, ``Screw._checked``, checked where the FE model is built
     from the section directly)."""
     if not isinstance(drive, BallScrewDrive):
         raise ValueError(f"`{fn}(drive=...)` must be a BallScrewDrive, got {type(drive).__name__}")
-    drive = eqx.tree_at(lambda d: d.screw, drive, drive.screw.checked())
+    drive = eqx.tree_at(lambda d: d.screw, drive, drive.screw._checked())
     eta = drive.screw.loss_factor
     expected = (
         "0 for a time-domain model (hysteretic damping has no state-space realisation; use "
