@@ -428,8 +428,10 @@ def concatenate(*trajectories: Trajectory) -> Trajectory:
                 f"{float(ak[-1]):.6g} m/s²"
             )
     durations = check(jnp.concatenate([traj.durations for traj in trajectories]),
-                      lambda h: jnp.isfinite(h) & (h >= 0), "concatenate(*trajectories)",
-                      "made of segments of finite, non-negative durations")
+                      lambda h: (h >= 0) & jnp.isfinite(jnp.cumsum(h)),
+                      "concatenate(*trajectories)",
+                      "made of segments of finite, non-negative durations, with finite knot "
+                      "times (their running sum)")
     return _from_durations(durations,
                            jnp.concatenate([traj.jerk for traj in trajectories]),
                            trajectories[0].r0)
