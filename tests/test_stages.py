@@ -258,7 +258,6 @@ def test_evaluate_runs_one_program_per_kind_and_shape_of_controller(drive):
     """Controllers share a compiled program when their trees and array shapes agree: the same
     double loop with other gains does, one with a second peak filter does not (stacking it
     with the first would fail)."""
-    from fdjax._tune._certify import fixed_controllers
     from fdjax._tune._synthesis import _program_key
 
     y = np.array([0.2, 0.5])
@@ -268,7 +267,7 @@ def test_evaluate_runs_one_program_per_kind_and_shape_of_controller(drive):
     two = eqx.tree_at(lambda c: c.mcm, ref, fdjax.MCM(fdjax.PeakFilter(
         np.repeat(mcm.peak.K, 2), np.repeat(mcm.peak.omega, 2), np.repeat(mcm.peak.xi, 2),
         np.repeat(mcm.peak.phi, 2)), mcm.notch))
-    keys = [_program_key(fixed_controllers(c, y)) for c in (ref, other, two)]
+    keys = [_program_key(c.fixed_at(y)) for c in (ref, other, two)]
     assert keys[0] == keys[1] and keys[0] != keys[2]
 
 

@@ -28,6 +28,7 @@ import abc
 import math
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
@@ -196,6 +197,25 @@ class AbstractController(eqx.Module):
         against the positions it was built for (eagerly where they are concrete, naming
         ``where``, the caller's argument) and requires them (``None`` is refused)."""
         return position_m
+
+    @property
+    def highest_frequency_hz(self) -> float | None:
+        """The highest filter frequency (Hz) the controller may take at any position, where
+        its filters are bounded by construction (a schedule's :class:`fdjax.MCMBounds`): the
+        servo that runs it must sample it, which :func:`fdjax.certify` and
+        :func:`fdjax.evaluate` check before they compile.  None (default): a fixed
+        controller's filters are checked where they are discretised."""
+        return None
+
+    def fixed_at(self, positions_m: Float[ArrayLike, " n"]) -> AbstractController:
+        """The fixed controllers this one runs at ``positions_m`` (m, 1-D), stacked along a
+        leading axis: itself repeated for a fixed controller, a scheduled one's controller at
+        each position.  One compiled program of the stacked controllers' kind then serves
+        every controller that runs as that kind (:func:`fdjax.certify`, :func:`fdjax.evaluate`)."""
+        y = jnp.asarray(positions_m, jnp.float64)
+        arrays, static = eqx.partition(self, eqx.is_array)
+        arrays = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, y.shape + x.shape), arrays)
+        return eqx.combine(arrays, static)
 
 
 def _log_positive(value, where: str) -> Array:

@@ -38,7 +38,6 @@ from .._simulation import SampledData, simulate
 from .._trajectory import Trajectory
 from ._parameterisation import check_sampled_by
 from ._penalties import MARGIN_REQUIREMENTS, grid_below_nyquist
-from ._schedule import InterpolatedLoop, ScheduledLoop
 
 __all__ = ["Certificate", "certify"]
 
@@ -142,18 +141,6 @@ def _least(m, attr, absolute=False):
     return jnp.min(jnp.stack(vals), axis=0)
 
 
-def fixed_controllers(controller: AbstractController, positions_m) -> AbstractController:
-    """The fixed controllers a (scheduled) controller runs at each position, stacked along a
-    leading axis: ``controller.controller(Y)`` for a scheduled loop, ``controller`` repeated
-    otherwise.  One compiled program then serves every controller of the same kind."""
-    y = jnp.asarray(positions_m, jnp.float64)
-    if isinstance(controller, (ScheduledLoop, InterpolatedLoop)):
-        return jax.vmap(controller.controller)(y)
-    arrays, static = eqx.partition(controller, eqx.is_array)
-    arrays = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, y.shape + x.shape), arrays)
-    return eqx.combine(arrays, static)
-
-
 def point_checks(controllers: AbstractController, drive: BallScrewDrive, positions_m, *,
                  servo: Servo, freq_hz, twin: TwinOptions, motion: Trajectory | None = None):
     """For each pair (controller_k, Y_k) of stacked fixed controllers and positions: stability
@@ -187,13 +174,6 @@ def _point_checks(controllers, drive, ys, servo, f, twin, motion, duration):
         return out
 
     return jax.lax.map(one, (controllers, ys))
-
-
-def check_bounds(controller: AbstractController, servo: Servo, where: str) -> None:
-    """A scheduled controller's filter bounds must lie below the servo's Nyquist frequency
-    (:func:`check_sampled_by`)."""
-    if isinstance(controller, (ScheduledLoop, InterpolatedLoop)):
-        check_sampled_by(controller.bounds.freq_hz[1], servo, where)
 
 
 def default_grid(servo: Servo) -> np.ndarray:
@@ -245,7 +225,7 @@ def certify(
     instance(servo, Servo, f"{fn}(servo=...)")
     if twin is not None:
         instance(twin, TwinOptions, f"{fn}(twin=...)")
-    check_bounds(controller, servo, f"{fn}(controller=...)")
+    check_sampled_by(controller.highest_frequency_hz, servo, f"{fn}(controller=...)")
     given = {"gain_margin_db": gain_margin_db, "phase_margin_deg": phase_margin_deg,
              "modulus_margin": modulus_margin}
     for name, ok, expected in MARGIN_REQUIREMENTS:
@@ -263,6 +243,6 @@ def certify(
         freq_hz, servo, f"{fn}(freq_hz=...)")
     twin = (TwinOptions() if twin is None else twin).resolve(drive, fn)
     release()
-    checks = point_checks(fixed_controllers(controller, y), drive, y, servo=servo, freq_hz=f,
+    checks = point_checks(controller.fixed_at(y), drive, y, servo=servo, freq_hz=f,
                           twin=twin)
     return certificate(y, checks, gain_margin_db, phase_margin_deg, modulus_margin)

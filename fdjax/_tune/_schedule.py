@@ -171,6 +171,17 @@ class ScheduledLoop(AbstractController):
         lo, hi = self.network.travel_m
         return _checks.inside(position_m, lo, hi, where, "the network's travel")
 
+    @property
+    def highest_frequency_hz(self) -> float:
+        """The bounds' highest filter frequency (Hz), ``bounds.freq_hz[1]``
+        (:attr:`AbstractController.highest_frequency_hz`)."""
+        return float(self.bounds.freq_hz[1])
+
+    def fixed_at(self, positions_m: Float[ArrayLike, " n"]) -> DoubleLoop:
+        """The double loops the schedule runs at ``positions_m`` (m), stacked
+        (:meth:`AbstractController.fixed_at`)."""
+        return jax.vmap(self.controller)(jnp.asarray(positions_m, jnp.float64))
+
     def check_position(self, position_m: Float[ArrayLike, ""] | None, where: str):
         """Positions (m) inside the network's travel (:meth:`AbstractController.check_position`)."""
         if position_m is None:
@@ -276,6 +287,17 @@ class InterpolatedLoop(AbstractController):
                                  f"lie at {lo:.6g} … {hi:.6g} m), got {bad:.6g}; "
                                  f"{bad:.6g} mm is {bad / 1000:.6g} m")
         return y
+
+    @property
+    def highest_frequency_hz(self) -> float:
+        """The bounds' highest filter frequency (Hz), ``bounds.freq_hz[1]``
+        (:attr:`AbstractController.highest_frequency_hz`)."""
+        return float(self.bounds.freq_hz[1])
+
+    def fixed_at(self, positions_m: Float[ArrayLike, " n"]) -> DoubleLoop:
+        """The double loops the interpolation runs at ``positions_m`` (m), stacked
+        (:meth:`AbstractController.fixed_at`)."""
+        return jax.vmap(self.controller)(jnp.asarray(positions_m, jnp.float64))
 
     def check_position(self, position_m: Float[ArrayLike, ""] | None, where: str):
         """Finite positions (m), not in mm (:meth:`AbstractController.check_position`)."""

@@ -54,12 +54,17 @@ from .._drive._reference import reference_drive
 from .._drive._twin import TwinOptions
 from .._memory import release
 from .._trajectory import Trajectory, reciprocating
-from ._certify import certificate, check_bounds, default_grid, fixed_controllers, point_checks
+from ._certify import certificate, default_grid, point_checks
 from ._end_to_end import train_schedule
 from ._local import Descent, LocalTuning, RobustTuning, tune_local, tune_robust, tune_shared_gains
 from ._objective import Objective
 from ._optimisers import default_optimiser
-from ._parameterisation import DoubleLoopParameterisation, MCMBounds, PIDParameterisation
+from ._parameterisation import (
+    DoubleLoopParameterisation,
+    MCMBounds,
+    PIDParameterisation,
+    check_sampled_by,
+)
 from ._schedule import ATANetwork, InterpolatedLoop, ScheduledLoop, fit_network
 from ._simplex import tune_simplex
 
@@ -444,14 +449,14 @@ def evaluate(
                          f"positions, got shape {y.shape}")
     for name, c in controllers.items():
         where = f"evaluate(controllers[{name!r}]=...)"
-        check_bounds(c, servo, where)
+        check_sampled_by(c.highest_frequency_hz, servo, where)
         c.check_position(y, f"evaluate(positions_m=...) for {where}")
     release()
     twin = TwinOptions().resolve(drive, "evaluate")
     f = default_grid(servo)
     groups: dict = {}
     for name, c in controllers.items():
-        fixed = fixed_controllers(c, y)
+        fixed = c.fixed_at(y)
         groups.setdefault(_program_key(fixed), []).append((name, fixed))
     out = {}
     for members in groups.values():
