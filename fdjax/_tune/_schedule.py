@@ -24,6 +24,7 @@ its hyperparameters and units (the path with suffix ``.json``).
 
 from __future__ import annotations
 
+import abc
 import json
 import math
 import os
@@ -139,7 +140,29 @@ def _scheduled(loop: DoubleLoop, network: ATANetwork, bounds: MCMBounds,
     return loop
 
 
-class ScheduledLoop(AbstractController):
+class _ScheduledDoubleLoop(AbstractController):
+    """A double loop whose MCM moves with the table position inside :class:`MCMBounds`: at Y
+    it runs the fixed double loop :meth:`controller` (Y)."""
+
+    bounds: eqx.AbstractVar[MCMBounds]
+
+    @abc.abstractmethod
+    def controller(self, position_m: Float[ArrayLike, ""]) -> DoubleLoop:
+        """The fixed double loop run at table position Y (m)."""
+
+    @property
+    def highest_frequency_hz(self) -> float:
+        """The bounds' highest filter frequency (Hz), ``bounds.freq_hz[1]``
+        (:attr:`AbstractController.highest_frequency_hz`)."""
+        return float(self.bounds.freq_hz[1])
+
+    def fixed_at(self, positions_m: Float[ArrayLike, " n"]) -> DoubleLoop:
+        """The double loops run at ``positions_m`` (m), stacked
+        (:meth:`AbstractController.fixed_at`)."""
+        return jax.vmap(self.controller)(jnp.asarray(positions_m, jnp.float64))
+
+
+class ScheduledLoop(_ScheduledDoubleLoop):
     r"""A double loop whose MCM is scheduled over the table position by an :class:`ATANetwork`
     (paper Fig. 15): at Y, the law of ``loop`` with ``bounds.to_mcm(network(Y))``.
 
@@ -170,17 +193,6 @@ class ScheduledLoop(AbstractController):
         """``position_m`` checked inside the network's travel (guarded when traced)."""
         lo, hi = self.network.travel_m
         return _checks.inside(position_m, lo, hi, where, "the network's travel")
-
-    @property
-    def highest_frequency_hz(self) -> float:
-        """The bounds' highest filter frequency (Hz), ``bounds.freq_hz[1]``
-        (:attr:`AbstractController.highest_frequency_hz`)."""
-        return float(self.bounds.freq_hz[1])
-
-    def fixed_at(self, positions_m: Float[ArrayLike, " n"]) -> DoubleLoop:
-        """The double loops the schedule runs at ``positions_m`` (m), stacked
-        (:meth:`AbstractController.fixed_at`)."""
-        return jax.vmap(self.controller)(jnp.asarray(positions_m, jnp.float64))
 
     def check_position(self, position_m: Float[ArrayLike, ""] | None, where: str):
         """Positions (m) inside the network's travel (:meth:`AbstractController.check_position`)."""
@@ -230,7 +242,7 @@ class ScheduledLoop(AbstractController):
         return self.controller(position_m).law(position_m)
 
 
-class InterpolatedLoop(AbstractController):
+class InterpolatedLoop(_ScheduledDoubleLoop):
     r"""A double loop whose MCM is interpolated linearly, parameter by parameter, between local
     designs in the normalised form of :class:`MCMBounds` (the baseline a scheduling network
     must beat):
@@ -287,17 +299,6 @@ class InterpolatedLoop(AbstractController):
                                  f"lie at {lo:.6g} … {hi:.6g} m), got {bad:.6g}; "
                                  f"{bad:.6g} mm is {bad / 1000:.6g} m")
         return y
-
-    @property
-    def highest_frequency_hz(self) -> float:
-        """The bounds' highest filter frequency (Hz), ``bounds.freq_hz[1]``
-        (:attr:`AbstractController.highest_frequency_hz`)."""
-        return float(self.bounds.freq_hz[1])
-
-    def fixed_at(self, positions_m: Float[ArrayLike, " n"]) -> DoubleLoop:
-        """The double loops the interpolation runs at ``positions_m`` (m), stacked
-        (:meth:`AbstractController.fixed_at`)."""
-        return jax.vmap(self.controller)(jnp.asarray(positions_m, jnp.float64))
 
     def check_position(self, position_m: Float[ArrayLike, ""] | None, where: str):
         """Finite positions (m), not in mm (:meth:`AbstractController.check_position`)."""
