@@ -153,9 +153,12 @@ def test_new_controller_runs_every_path(drive, twin):
         cl = fdjax.closed_loop(ctl, twin, method=method)
         assert (cl.dt is None) == isinstance(method, fdjax.Continuous)
         lam, lam_ref = np.linalg.eigvals(np.asarray(cl.A)), control.poles(ref)
+        # as many poles as python-control's loop, and the sampled loop's one more (below)
+        assert lam.size == lam_ref.size + isinstance(method, fdjax.SampledData)
         cost = np.abs(lam[:, None] - lam_ref[None, :])
         i, j = linear_sum_assignment(cost)
-        assert np.all(cost[i, j] <= 1e-7 * np.maximum(np.abs(lam_ref[j]), 1.0)), cost[i, j]
+        # measured 3.1e-12 (continuous) and 1.4e-13 (sampled) relative
+        assert np.all(cost[i, j] <= 1e-10 * np.maximum(np.abs(lam_ref[j]), 1.0)), cost[i, j]
         # the sampled loop keeps the previous encoder angle, unread by this law: a pole at 0
         extra = np.delete(lam, i)
         assert np.all(np.abs(extra) < 1e-12), extra
@@ -166,7 +169,8 @@ def test_new_controller_runs_every_path(drive, twin):
     sim = fdjax.simulate(ctl, twin, ref)
     r = np.asarray(sim.reference[:, 0])
     y = control.forced_response(control.feedback(L_d, 1), U=r).outputs
-    np.testing.assert_allclose(sim.x2, y, rtol=0, atol=1e-9 * np.max(np.abs(r)))
+    # measured 5.5e-15 of the stroke
+    np.testing.assert_allclose(sim.x2, y, rtol=0, atol=1e-13 * np.max(np.abs(r)))
     # the continuous closed loop: r → x2 as python-control's feedback of the same loop
     # (python-control's tf2ss of the Padé factors, then lsim without balancing, lose ~1e-6 in
     # the time domain, so the transfer functions are compared, and the run against lsim of the
@@ -181,7 +185,8 @@ def test_new_controller_runs_every_path(drive, twin):
     W = np.stack([r_c, *np.asarray(ode.reference[:, 1:]).T, np.zeros_like(r_c)], 1)
     _, y_c, _ = sig.lsim(tuple(np.asarray(x) for x in (cl.A, cl.B, cl.C, cl.D)), W,
                          np.asarray(ode.t))
-    np.testing.assert_allclose(ode.x2, y_c[:, 1], rtol=0, atol=1e-9 * np.max(np.abs(r)))
+    # measured 5.0e-13 of the stroke (the ODE solver's tolerances)
+    np.testing.assert_allclose(ode.x2, y_c[:, 1], rtol=0, atol=1e-11 * np.max(np.abs(r)))
 
 
 def test_new_controller_under_jit_vmap_grad(drive):
@@ -208,8 +213,14 @@ def test_new_controller_under_jit_vmap_grad(drive):
     # central differences: truncation h²·f'''/6 and round-off ε/h, both near 1e-10 here
     # (measured 2.7e-10)
     np.testing.assert_allclose(g.log_k, fd, rtol=1e-8)
-    gp = eqx.filter_grad(lambda c: rms(c, 0.4, fdjax.PadeODE(pade_order=PADE)))(ctl)
-    assert np.isfinite(float(gp.log_wz)) and float(gp.log_k) != 0.0
+    # and through the Padé ODE (diffrax's adjoint through the user's block), in log k and in
+    # the block's pole (measured 5.3e-8 and 1.4e-7 against central differences at h = 1e-5)
+    pade = fdjax.PadeODE(pade_order=PADE)
+    gp = eqx.filter_grad(lambda c: rms(c, 0.4, pade))(ctl)
+    for get in (lambda c: c.log_k, lambda c: c.log_wp):
+        move = lambda d, get=get: eqx.tree_at(get, ctl, get(ctl) + d)  # noqa: E731
+        fd = (rms(move(h), 0.4, pade) - rms(move(-h), 0.4, pade)) / (2 * h)
+        np.testing.assert_allclose(get(gp), fd, rtol=1e-6)
 
 
 # ---------------------------------------------------------------- sampled margins
@@ -233,8 +244,6 @@ def test_sampled_law_response_is_its_realisation(which):
     # the realisation solved per frequency against the factors' product: round-off (measured
     # 2.4e-14 entry by entry, 4e-15 of the largest entry; the integrators make |K| ~1e6 at 1 Hz)
     np.testing.assert_allclose(np.asarray(K), want, rtol=1e-13, atol=1e-14 * np.abs(want).max())
-    np.testing.assert_array_equal(np.asarray(law.discrete_transfer(z, T, "fitted")),
-                                  np.asarray(K))
     assert R.dt == pytest.approx(T)
 
 

@@ -437,8 +437,10 @@ def test_grad_of_margins_matches_finite_differences(twin):
         h = 1e-6 * float(x0[j])
         e = jnp.zeros(3).at[j].set(h)
         fd = (np.asarray(margins(x0 + e)) - np.asarray(margins(x0 - e))) / (2 * h)
+        # each margin against its own scale (one atol from the largest, the phase margin's,
+        # let a small margin's derivative be 3 % off); measured ≤ 3.8e-8 relative
         scale = np.abs(v0) / float(x0[j])
-        np.testing.assert_allclose(J[:, j], fd, rtol=1e-5, atol=1e-6 * np.max(scale))
+        assert np.all(np.abs(J[:, j] - fd) <= 1e-6 * np.abs(fd) + 1e-9 * scale), (j, J[:, j], fd)
 
 
 def test_grad_of_loop_gain_wrt_mcm(frf):
