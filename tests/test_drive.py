@@ -27,15 +27,19 @@ def test_shape_and_units(H):
     assert H.dtype == np.complex128
     # receptances of a machine-tool axis: x2/F3 above 100 Hz lies near the mass line of the
     # 700 kg saddle, 1/(mω²) = 3.6e-12 m/N at its geometric-mean frequency ≈ 550 Hz
-    assert 1e-12 < np.median(np.abs(H[:, FREQ > 100, 1, 1])) < 1e-10
+    # (measured median 2.74e-12: a unit error of 10 falls outside)
+    assert 2e-12 < np.median(np.abs(H[:, FREQ > 100, 1, 1])) < 5e-12
 
 
 def test_coupled_equals_direct_assembly(drive, H):
     """LM-FBS with B = [0, −i_sc, −1, 1, 0, 0] equals one model assembled without coupling.
 
     Both are exact; they differ by the round-off of the solves, ≈ eps·cond of the largest
-    response.  Measured: 6.5e-11 normwise; entrywise 7.5e-11, except θ1/F3 near 2.3 kHz
-    (9.9e-9), where that entry is 1e-12 of its own peak."""
+    response.  Measured: 6.5e-11 normwise; entrywise 7.5e-11, except θ1/F3 where it is small
+    against its own peak: there the error is 5.8e-11 of that peak (5.0e-11 with XLA's default
+    compilation), and entrywise 5.9e-11 where the entry is above 1e-6 of the peak (near
+    2.3 kHz, at 1e-12 of the peak, 9.9e-9; at 3e-9 of the peak 3.0e-10, 4.9e-10 with XLA's
+    default compilation)."""
     from test_statespace import normwise_error
 
     Hd = np.asarray(drive.frf_direct(POS, FREQ))
@@ -43,8 +47,9 @@ def test_coupled_equals_direct_assembly(drive, H):
     rel = np.abs(H - Hd) / np.abs(Hd)
     assert np.delete(rel, 1, axis=-1)[..., 0].max() < 3e-10  # θ1/T1
     assert rel[..., 1:, :].max() < 3e-10  # x2 and x3 rows
-    tiny = np.abs(Hd[..., 0, 1]) < 1e-9 * np.abs(Hd[..., 0, 1]).max()
-    assert rel[..., 0, 1][~tiny].max() < 3e-10 and rel[..., 0, 1][tiny].max() < 1e-7
+    peak = np.abs(Hd[..., 0, 1]).max()
+    assert np.abs(H - Hd)[..., 0, 1].max() < 1e-10 * peak
+    assert rel[..., 0, 1][np.abs(Hd[..., 0, 1]) > 1e-6 * peak].max() < 1e-10
 
 
 def test_reciprocity(H):
@@ -149,10 +154,13 @@ def test_grad_matches_finite_differences(drive):
         up = eqx.tree_at(get, drive, jnp.asarray(x0 + h))
         dn = eqx.tree_at(get, drive, jnp.asarray(x0 - h))
         fd = (mag(up, y) - mag(dn, y)) / (2 * h)
-        np.testing.assert_allclose(float(g), float(fd), rtol=1e-6, err_msg=name)
+        # central differences: truncation and round-off ~ε^(2/3) ≈ 4e-11 of the scale;
+        # measured 2e-10, 4e-11, 5e-11, 2e-11
+        np.testing.assert_allclose(float(g), float(fd), rtol=1e-8, err_msg=name)
     h = 1e-6
     fd = (mag(drive, y + h) - mag(drive, y - h)) / (2 * h)
-    np.testing.assert_allclose(float(g_y), float(fd), rtol=1e-6)
+    # round-off ε·|f|/h of the position step: measured 1.2e-9, 1.4e-8 with the suite's flags
+    np.testing.assert_allclose(float(g_y), float(fd), rtol=1e-7)
 
 
 def test_vmap_over_drives_equals_loop(drive):

@@ -78,7 +78,7 @@ def test_grad_of_frf_magnitude_matches_finite_differences():
     g = jax.grad(mag)(k1)
     h = 1e-5 * 5e7  # ≈ eps^(1/3) · scale for a central difference
     fd = (mag(k1 + h) - mag(k1 - h)) / (2 * h)
-    np.testing.assert_allclose(float(g), float(fd), rtol=1e-6)
+    np.testing.assert_allclose(float(g), float(fd), rtol=5e-9)  # measured 4e-10
 
 
 def test_vmap_over_models_equals_loop():
@@ -134,7 +134,7 @@ def test_modes_of_a_free_model_differentiate_and_a_traced_bad_mass_is_named():
     g = np.asarray(jax.grad(total)(jnp.asarray(k)))
     h = 1e3
     fd = [(float(total(k + e)) - float(total(k - e))) / (2 * h) for e in h * np.eye(2)]
-    np.testing.assert_allclose(g, fd, rtol=1e-6)
+    np.testing.assert_allclose(g, fd, rtol=5e-9)  # measured 5.6e-11 and 3.0e-10
     assert float(fdjax.three_mass().modes()[0][0]) == 0.0
     eye = jnp.eye(2)
     with pytest.raises(CHECK_FAILED, match=r"`LumpedModel\.modes\(\)` must be computed from a "

@@ -96,7 +96,7 @@ def test_grad_wrt_length_matches_finite_differences():
     g = jax.grad(mag)(L)
     h = 1e-5
     fd = (mag(L + h) - mag(L - h)) / (2 * h)
-    np.testing.assert_allclose(float(g), float(fd), rtol=1e-6)
+    np.testing.assert_allclose(float(g), float(fd), rtol=5e-9)  # measured 6e-11
 
 
 @pytest.mark.parametrize("kind, kwargs, name, value", [

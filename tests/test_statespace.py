@@ -24,6 +24,7 @@ import pytest
 import scipy.linalg
 import scipy.signal
 from jit_errors import CHECK_FAILED
+from scipy.optimize import linear_sum_assignment
 
 from fdjax._drive import table1_drive as reference_drive  # the twin checked on the Table 1 drive
 from fdjax._drive._twin import (
@@ -143,17 +144,22 @@ def fitted_order(h, err):
 
 # ------------------------------------------------------------------------------------ tests
 def test_oracle_matches_drive():
-    """The NumPy exact stiffness is the drive's own model: same receptance as drive.frf."""
+    """The NumPy exact stiffness, assembled here from the rods' closed forms and the drive's
+    parameters (not from fdjax's substructures), gives the same receptance as drive.frf, at
+    the three positions over 5 Hz – 3 kHz.  Both solve a 9×9 system by different routes:
+    measured 5.6e-12, 5.4e-12 and 1.4e-11 normwise at 0.1, 0.4 and 0.7 m."""
     drive = undamped(reference_drive())
     e = np.eye(9)
     c = drive.carriage
     out = np.stack([e[0], e[7] + float(c.scale_height) * e[8], e[7] + float(c.tool_height) * e[8]])
     inp = np.stack([e[0], e[7] + float(c.tool_height) * e[8]], -1)
-    H = np.stack([out @ np.linalg.solve(exact_stiffness(drive, 0.4, 2 * np.pi * f)[0], inp)
-                  for f in F_CHECK])
-    H_ref = np.asarray(drive.frf(0.4, F_CHECK))[0]
-    # Both solve the same 9×9 system; cond(D) ≲ 1e6 bounds the difference by ~1e-10.
-    assert normwise_error(H, H_ref, drive).max() < 1e-9
+    freq = np.geomspace(5.0, 3000.0, 300)
+    for y in POSITIONS:
+        H = np.stack([out @ np.linalg.solve(exact_stiffness(drive, y, 2 * np.pi * f)[0], inp)
+                      for f in freq])
+        H_ref = np.asarray(drive.frf(y, freq))[0]
+        err = normwise_error(H, H_ref, drive).max()
+        assert err < 3e-11, (y, err)
 
 
 @pytest.mark.parametrize(
@@ -242,15 +248,18 @@ def _peaks(freq, mag):
 def test_state_space_matches_exact_frf(position):
     """Truncated realisation (default mesh and band) against the exact FRF over 10 Hz–2 kHz.
 
-    Stated tolerance: 1 % normwise outside ±5 % of every resonance.  Budget: (i) the mesh — a
+    Specified: 1 % normwise outside ±5 % of every resonance; measured 7.8e-5, 5.8e-5 and
+    1.45e-4 at Y = 0.1, 0.4, 0.7 m, asserted 2e-4 (a twin of half the default mesh gives
+    3.1e-4 to 5.0e-4 and fails).  Budget: (i) the mesh — a
     natural-frequency error δ changes a mode's term by 2δ·ω_r²/|ω_r² − ω²| ≤ 21δ at the ±5 %
     edge, ≤ 3.4 % for δ ≤ 0.16 % if that mode alone made the response; the neighbouring modes
     share it and the measured FE error is ≤ 0.57 %; (ii) the truncation above 4 kHz, ≤ 0.035 %
     against the untruncated FE model.  Below the first elastic mode the rigid body dominates:
-    ≤ 4e-6 measured, asserted 1e-4.  Peaks: within 0.09 % except one: the screw's axial mode
-    at Y = 0.4 m (1608 Hz, ζ ≈ 0.04) shows as a weak peak at 1730 Hz in θ1/F3, x2/T1 and x3/T1,
-    7 % above its natural frequency on a background that the modes above 4 kHz still bend (D
-    holds them only statically): 0.54 % measured, asserted 0.6 %.
+    ≤ 4.0e-6 measured, asserted 6e-6 (half the mesh: 1.9e-5).  Peaks: within 0.09 % except
+    one: the screw's axial mode at Y = 0.4 m (1608 Hz, ζ ≈ 0.04) shows as a weak peak at
+    1730 Hz in θ1/F3, x2/T1 and x3/T1, 7 % above its natural frequency on a background that
+    the modes above 4 kHz still bend (D holds them only statically): 0.54 % measured,
+    asserted 0.6 %.
     """
     drive = reference_drive()
     freq = np.geomspace(10.0, F_MAX, 2500)
@@ -262,8 +271,8 @@ def test_state_space_matches_exact_frf(position):
     for fr in exact:
         off &= np.abs(freq / fr - 1) > 0.05
     err = normwise_error(H, H_ref, drive)
-    assert err[off].max() < 1e-2, err[off].max()
-    assert err[freq < 0.8 * exact[0]].max() < 1e-4
+    assert err[off].max() < 2e-4, err[off].max()
+    assert err[freq < 0.8 * exact[0]].max() < 6e-6, err[freq < 0.8 * exact[0]].max()
     for i in range(3):
         for j in range(2):
             ref_peaks = _peaks(freq, np.abs(H_ref[:, i, j]))
@@ -321,10 +330,22 @@ def test_python_control_cross_check():
     H_ctrl = np.moveaxis(sys(2j * np.pi * freq), -1, 0)
     H = np.asarray(ss.frf(freq))
     assert normwise_error(H, H_ctrl, drive).max() < 1e-9
-    np.testing.assert_allclose(
-        np.sort_complex(control.poles(sys)), np.sort_complex(np.linalg.eigvals(np.asarray(ss.A))),
-        rtol=1e-9, atol=1e-9,
-    )
+    # the poles of the twin that keeps every mode are those of the FE model, the quadratic
+    # eigenvalues of (M, C, K) by QZ (the damping block ΦᵀCΦ in full): measured 1.2e-8
+    # relative for the oscillatory pairs; the rigid-body pair (0 and −c/J = −7.05 1/s, K
+    # singular) 2.7e-6 and 1.6e-6 absolute
+    fe = fe_matrices(drive, 0.25)
+    M, C, K = (np.asarray(x) for x in (fe.mass, fe.damping, fe.stiffness))
+    n = M.shape[0]
+    full = state_space(drive, 0.25, twin=TwinOptions(kept_modes=n))
+    lam = np.linalg.eigvals(np.asarray(full.A))
+    eye, zero = np.eye(n), np.zeros((n, n))
+    lam_fe = scipy.linalg.eig(np.block([[zero, eye], [-K, -C]]),
+                              np.block([[eye, zero], [zero, M]]), right=False)
+    assert lam.size == lam_fe.size == 2 * n
+    cost = np.abs(lam[:, None] - lam_fe[None, :])
+    i, j = linear_sum_assignment(cost)
+    assert np.all(cost[i, j] <= 5e-8 * np.abs(lam_fe[j]) + 1e-5), cost[i, j]
     Hv = np.asarray(ss.frf(freq, velocity=True))
     Hv_ref = 2j * np.pi * freq[:, None, None] * (H - np.asarray(ss.D))
     assert normwise_error(Hv, Hv_ref, drive).max() < 1e-9
@@ -344,7 +365,8 @@ def test_grad_matches_finite_differences():
 
     The loss carries round-off ε_f ≈ 1e-13 relative (eigensolver, measured), so the central
     step is δ = ε_f^(1/3) ≈ 5e-5 of the value: truncation ~δ² ≈ 3e-9 and round-off
-    ~ε_f/δ ≈ 2e-9 relative to |f|, ≲ 1e-6 of the derivative; asserted 2e-5.
+    ~ε_f/δ ≈ 2e-9 relative to |f|, which the derivative's smallness amplifies: measured
+    6.5e-6 of the derivative; asserted 2e-5.
     """
     drive = reference_drive()
     m = count_modes(drive)
