@@ -43,7 +43,7 @@ def test_modes_are_differentiable(drive):
     g = jax.grad(f0)(k)
     h = 1e-4 * float(k)
     fd = (f0(k + h) - f0(k - h)) / (2 * h)
-    np.testing.assert_allclose(float(g), float(fd), rtol=1e-5)
+    np.testing.assert_allclose(float(g), float(fd), rtol=5e-7)  # measured 9.1e-8
     assert float(g) > 0  # a stiffer nut raises the axial mode
 
 

@@ -69,7 +69,7 @@ def test_default_gains_stable_over_the_travel(drive):
                                        servo=fdjax.Servo(delay_samples=d))
             assert np.all(np.asarray(st.stable)), st.message
     dl = fdjax.loop_margins(DoubleLoop(), drive, F, position_m=positions).plant_input
-    assert np.all(np.abs(np.asarray(dl.gain_margin_db) - 8.0) < 0.2)
+    assert np.all(np.abs(np.asarray(dl.gain_margin_db) - 8.0) < 0.05)  # 7.968–7.990 dB
     pid = fdjax.loop_margins(PIDLoop(), drive, F, position_m=positions).plant_input
     g = np.asarray(pid.gain_margin_db)
     assert 22.0 < g[0] < 22.4 and 16.4 < g[-1] < 16.8 and np.all(np.diff(g) < 0)
@@ -109,7 +109,8 @@ def test_a_fixed_mcm_needs_a_schedule(drive):
     examples/servo_drive_study.py) it has 6.18 dB."""
     c = fdjax.reference_controller(drive)
     g = db(fdjax.gain_headroom(c, drive, position_m=np.array([Y, 0.3, 0.7])))
-    assert g[0] > 10.5 and g[1] < 3.0 and g[2] < -100, g  # −∞: unstable
+    # measured 10.80 and 2.51 dB; −∞ (unstable) at 0.7 m
+    assert 10.6 < g[0] < 11.0 and 2.3 < g[1] < 2.7 and g[2] < -100, g
     retuned = MCM(fdjax.PeakFilter(0.35559, TWO_PI * 119.621, 0.20761, math.radians(-43.785)),
                   fdjax.NotchFilter(TWO_PI * 1236.01, 0.00392, 0.30781))
     loop = DoubleLoop(200.0, 5400.0, 60.0, k_ffa=c.k_ffa, mcm=retuned)
@@ -134,15 +135,17 @@ def test_gain_headroom_checks_its_arguments(drive):
 
 
 def test_low_modes_nearly_constant_higher_modes_move(drive):
-    """(f), paper Figs. 10–12: over the travel the pitch mode moves 1.5 % and the torsional mode
-    the encoder sees 0.02 %; the saddle's axial mode 40 % and the screw's axial mode 48 % in
-    frequency, with its resonant phase turning by ~180° where it passes the 2.8 kHz mode."""
+    """(f), paper Figs. 10–12: over the travel the pitch mode moves 1.4 % and the torsional mode
+    the encoder sees 0.02 %; the saddle's axial mode 50 % (177 → 118 Hz) and the screw's axial
+    mode 48 % in frequency, with its resonant phase turning by ~180° where it passes the
+    2.8 kHz mode (max/min − 1 over 13 positions; measured 1.415 %, 0.017 %, 49.8 %, 48.4 %,
+    187°)."""
     pos = np.linspace(0.1, 0.7, 13)
     m = fdjax.track_drive_modes(fdjax.drive_modes(drive, pos, n_modes=5,
                                                   twin=fdjax.TwinOptions(n_elements=48)))
     f = np.asarray(m.frequency_hz)
     spread = f.max(axis=0) / f.min(axis=0) - 1
-    assert spread[0] < 0.02 and spread[2] < 0.001, spread
-    assert spread[1] > 0.4 and spread[3] > 0.45, spread
+    assert 0.013 < spread[0] < 0.016 and spread[2] < 3e-4, spread
+    assert 0.48 < spread[1] < 0.52 and 0.47 < spread[3] < 0.50, spread
     ph = np.asarray(m.phase_deg)[:, 3]
     assert np.ptp(ph) > 150, ph
