@@ -111,16 +111,18 @@ def mm_hint(value: float) -> str:
     return f"; lengths are in metres: {value:.6g} mm is {value / 1000:.6g} m"
 
 
-def at_most(value, limit: float, where: str, reason: str):
-    """A concrete length (m) checked at most ``limit`` by :func:`check`, the message giving
-    ``reason``; a value beyond it whose thousandth is within it was given in millimetres, and
-    the message says so (:func:`mm_hint`).  A traced value is returned as it is: a
-    plausibility check of what is given, not a guard of what is computed."""
+def at_most(value, limit: float, where: str, reason: str, *, magnitude: bool = False):
+    """A concrete length (m) checked at most ``limit`` (its magnitude, with ``magnitude``) by
+    :func:`check`, the message giving ``reason``; a value beyond it whose thousandth is within
+    it was given in millimetres, and the message says so (:func:`mm_hint`).  A traced value is
+    returned as it is: a plausibility check of what is given, not a guard of what is
+    computed."""
     if not is_concrete(value):
         return value
-    ok = lambda v: v <= limit  # noqa: E731
+    ok = (lambda v: abs(v) <= limit) if magnitude else (lambda v: v <= limit)  # noqa: E731
+    size = " in magnitude" if magnitude else ""
     try:
-        return check(value, ok, where, f"at most {limit:g} m ({reason})")
+        return check(value, ok, where, f"at most {limit:g} m{size} ({reason})")
     except ValueError as err:  # concrete and real here
         mm = _in_mm(value, ok)
         if mm is not None:

@@ -562,13 +562,18 @@ def modes(out: str | None, n_positions: int, n_modes: int | None, source: str) -
     pos = np.linspace(lo, hi, n_positions)
     f_lo, f_hi = MODES_BAND_HZ
     if source == "fit":  # minutes of work: say so before it starts
-        print(f"identifying the modes at {n_positions} positions from their FRFs (13 take "
-              "about 2 min on 2 cores) ...", file=sys.stderr, flush=True)
+        minutes = max(1, round(2 * n_positions / 13))
+        print(f"identifying the modes at {n_positions} positions from their FRFs (about "
+              f"{minutes} min on 2 cores) ...", file=sys.stderr, flush=True)
     if source == "fit":
         f = np.geomspace(f_lo, f_hi, 2000)
         H = np.asarray(drive.frf(pos, f))[:, :, 1, 0]
         result = fdjax.identify_modes_batched(f, H)
         if n_modes is not None:
+            found = result.frequency_hz.shape[1]
+            if n_modes > found:
+                print(f"--n-modes {n_modes}: the identification found {found} modes in "
+                      f"{f_lo:g}-{f_hi:g} Hz; reporting those", file=sys.stderr)
             result = _lowest(result, n_modes)
         result = fdjax.track_modes(result)
     else:
@@ -648,6 +653,7 @@ def _count(what: str, minimum: int, maximum: int | None = None):
 
 COMMANDS = ("reproduce", "demo", "figures", "modes", "tune")
 MODES_MAX_POSITIONS = 601  # one every millimetre of the reference drive's travel
+MODES_MAX_MODES = 100      # what fdjax.drive_modes computes at most
 
 
 class _Version(argparse.Action):
@@ -713,7 +719,7 @@ def _out_option(p: argparse.ArgumentParser, default: str | None, help: str | Non
 
 
 def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="fdjax", description=__doc__,
+    parser = argparse.ArgumentParser(prog="fdjax", description=__doc__.replace("``", ""),
                                      formatter_class=argparse.RawDescriptionHelpFormatter,
                                      allow_abbrev=False)
     parser.add_argument("--version", action=_Version, help="print the version and exit")
@@ -743,7 +749,8 @@ def _parser() -> argparse.ArgumentParser:
                         f"not a position; default 13, at most {MODES_MAX_POSITIONS}: one every "
                         "mm); --source fit identifies 13 in about 2 min on 2 cores, model "
                         "in 20 s")
-    p.add_argument("--n-modes", type=_count("the number of modes", 1), default=None,
+    p.add_argument("--n-modes", type=_count("the number of modes", 1, MODES_MAX_MODES),
+                   default=None,
                    metavar="N", help="report the lowest N modes (default: every mode in "
                    "10-3000 Hz; with --source fit the identification chooses its order "
                    "itself)")

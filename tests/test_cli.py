@@ -7,6 +7,7 @@ import importlib.metadata
 import json
 import os
 import pathlib
+import re
 import subprocess
 import sys
 
@@ -181,7 +182,10 @@ def test_modes_writes_table(tmp_path, capsys):
         (["modes", "--positions", "1"], "an integer ≥ 2 and ≤ 601; got '1'"),
         (["modes", "--positions", "1000000"], "an integer ≥ 2 and ≤ 601; got '1000000'"),
         (["modes", "--n-modes", "0"],
-         "argument --n-modes: expected the number of modes, an integer ≥ 1; got '0'"),
+         "argument --n-modes: expected the number of modes, an integer ≥ 1 and ≤ 100; got '0'"),
+        (["modes", "--n-modes", "99999", "--source", "model"],
+         "argument --n-modes: expected the number of modes, an integer ≥ 1 and ≤ 100; "
+         "got '99999'"),
         ([], "the following arguments are required: {reproduce,demo,figures,modes,tune}"),
         (["tnue"], "unknown command 'tnue'; did you mean 'tune'?"),
         (["tune", "--steps", "10"], "unrecognized arguments: --steps 10 (options of 'tune': "
@@ -198,7 +202,7 @@ def test_modes_writes_table(tmp_path, capsys):
     ],
     ids=["typo", "typo-figures", "unknown-command", "bad-option", "abbreviation", "bad-choice",
          "positions-in-mm", "positions-in-m", "positions-too-few", "positions-too-many",
-         "n-modes-zero", "no-command",
+         "n-modes-zero", "n-modes-too-many", "no-command",
          "typo-tune", "tune-bad-option", "demo-is-quick", "version-typo", "option-first",
          "unknown-short"],
 )
@@ -316,8 +320,12 @@ def test_help_lists_the_commands(capsys):
         cli.main(["--help"])
     assert exc.value.code == 0
     out = capsys.readouterr().out
+    assert "{" + ",".join(cli.COMMANDS) + "}" in out.splitlines()[0]   # the parser's commands
     for command in cli.COMMANDS:
         assert f"fdjax {command}" in out
+        # each command's own line under "positional arguments", with its help
+        assert re.search(rf"^    {command} +\S", out, re.M), command
+    assert "``" not in out     # the module docstring's markup is not printed
 
 
 # ---------------------------------------------------------------------- printed margins

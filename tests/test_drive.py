@@ -214,6 +214,52 @@ def test_screw_lengths_are_in_metres(kwargs, match):
         fdjax.Screw(**kwargs)
 
 
+@pytest.mark.parametrize(
+    "make, match",
+    [
+        (lambda: fdjax.Carriage(10.0, 1.0, 1e6, tool_height=150.0),
+         r"`Carriage\(tool_height=\.\.\.\)` must be at most 5 m in magnitude \(no point of a "
+         r"carriage lies farther from its pitch centre\), got 150; lengths are in metres: 150 mm "
+         r"is 0\.15 m"),
+        (lambda: fdjax.Carriage(10.0, 1.0, 1e6, nut_height=-120.0),
+         r"`Carriage\(nut_height=\.\.\.\)` must be at most 5 m in magnitude .*got -120; lengths "
+         r"are in metres: -120 mm is -0\.12 m"),
+        (lambda: fdjax.Carriage(10.0, 1.0, 1e6, scale_height=5.5),
+         r"`Carriage\(scale_height=\.\.\.\)` must be at most 5 m in magnitude .*got 5\.5; "
+         r"lengths are in metres: 5\.5 mm is 0\.0055 m"),
+        (lambda: fdjax.Table(10.0, 1e8, height=300.0),
+         r"`Table\(height=\.\.\.\)` must be at most 5 m in magnitude .*got 300; lengths are in "
+         r"metres: 300 mm is 0\.3 m"),
+        (lambda: fdjax.Rod.axial(diameter=0.03, length=850.0),
+         r"`Rod\.axial\(length=\.\.\.\)` must be at most 20 m \(no ball screw is longer\), got "
+         r"850; lengths are in metres: 850 mm is 0\.85 m"),
+        (lambda: fdjax.Rod(850.0, 1.0, 1.0),
+         r"`Rod\(length=\.\.\.\)` must be at most 20 m \(no ball screw is longer\), got 850; "
+         r"lengths are in metres: 850 mm is 0\.85 m"),
+    ],
+)
+def test_heights_and_rod_lengths_are_in_metres(make, match):
+    """A height of 150 (mm) used to give a tool point 150 m above the carriage silently (the
+    x3 column 748× the reference drive's); a rod of 850 (mm), an 850 m rod."""
+    with pytest.raises(ValueError, match="^" + match + "$"):
+        make()
+
+
+def test_height_limits_and_traced_heights():
+    """The limits themselves are carriages; a traced height is not refused (its plausibility
+    is checked where it is given) and compiles once."""
+    fdjax.Carriage(10.0, 1.0, 1e6, nut_height=-5.0, tool_height=5.0, table=fdjax.Table(
+        10.0, 1e8, height=5.0))
+    fdjax.Rod.axial(diameter=0.03, length=20.0)
+
+    @eqx.filter_jit
+    @eqx.debug.assert_max_traces(max_traces=1)
+    def x3(h):
+        return fdjax.Carriage(10.0, 1.0, 1e6, tool_height=h).heights[2]
+
+    assert float(x3(jnp.asarray(0.15))) == 0.15 and float(x3(jnp.asarray(150.0))) == 150.0
+
+
 def test_screw_limits_and_traced_screws():
     """The limits themselves are screws (20 m long, 1 m thick, 0.5 m lead); traced values are
     checked finite and positive only, as before, and compile once."""

@@ -334,6 +334,16 @@ def test_reference_pid_names_its_feedforward_gains():
         fdjax.reference_pid(k_ffa="x")
 
 
+def test_reference_controller_names_its_arguments():
+    """Its own name, not rigid_feedforward, which it calls."""
+    with pytest.raises(TypeError, match=r"^`reference_controller\(drive=\.\.\.\)` must be an "
+                                        r"fdjax\.BallScrewDrive, got str$"):
+        fdjax.reference_controller("x")
+    with pytest.raises(TypeError, match=r"^`reference_controller\(servo=\.\.\.\)` must be an "
+                                        r"fdjax\.Servo, got float$"):
+        fdjax.reference_controller(fdjax.reference_drive(), 1.2)
+
+
 def test_first_use_inside_a_users_jit_leaks_no_tracer():
     """fdjax loads its modules on first use; when that use is inside a jitted function, the
     module's constants (the default Servo()) were built as tracers of that trace, and the

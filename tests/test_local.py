@@ -55,6 +55,42 @@ def test_local_tuning_improves_every_position():
         fdjax.tune_local(par, obj, drive, pos, np.zeros((3, 12)))
 
 
+def test_local_tuning_refuses_a_non_finite_step_at_its_position_only():
+    """tune_local's own guard, per position: an optimiser whose step leaves finite numbers
+    from its third step on, at the position that starts with the higher k_p only.  There the
+    parameters stay where they were (the history flat from the third step, θ finite); the
+    other position runs on bit for bit as in a run where no step is refused (same shapes,
+    same optimiser: nothing compiles for the second run)."""
+    drive = fdjax.reference_drive()
+    start = fdjax.reference_controller(drive)
+    par = fdjax.DoubleLoopParameterisation(BOUNDS, start)
+    ref = fdjax.reciprocating(stroke=1e-3, v_max=0.05, a_max=2.0, j_max=400.0, cycles=1)
+    obj = fdjax.Objective(ref, np.geomspace(5.0, 3900.0, 64),
+                          twin=fdjax.TwinOptions(kept_modes=4))
+    theta0 = np.asarray(par.from_controller(start))
+
+    def init(p):   # (steps taken, whether this position's steps turn non-finite)
+        return jnp.zeros((), jnp.int32), p[0] > theta0[0] + 0.05
+
+    def update(g, state, params=None, **_):
+        count, spoilt = state
+        u = jnp.where(spoilt & (count >= 2), jnp.nan, -1e-4 * g)
+        return u, (count + 1, spoilt)
+
+    opt = optax.GradientTransformationExtraArgs(init, update)
+    pos = np.array([0.115, 0.3])
+    higher = theta0 + np.eye(theta0.size)[0] * 0.1
+    bad = fdjax.tune_local(par, obj, drive, pos, np.stack([theta0, higher]), steps=4, chunk=4,
+                           optimiser=opt)
+    good = fdjax.tune_local(par, obj, drive, pos, np.stack([theta0, theta0]), steps=4, chunk=4,
+                            optimiser=opt)
+    h = np.asarray(bad.history)
+    assert np.all(np.isfinite(h)) and np.all(np.isfinite(np.asarray(bad.theta)))
+    assert h[1, 1] != h[0, 1] and np.all(h[2:, 1] == h[2, 1])     # two steps, then refused
+    np.testing.assert_array_equal(h[:, 0], np.asarray(good.history)[:, 0])
+    np.testing.assert_array_equal(np.asarray(bad.theta)[0], np.asarray(good.theta)[0])
+
+
 def test_local_tuning_by_lbfgs_keeps_the_positions_apart():
     """L-BFGS (a line search on the objective at each position) in the vmapped run: the
     objective falls at every position, and each position's run depends on its own objective

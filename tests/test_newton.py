@@ -256,10 +256,44 @@ def test_sr1_update_meets_the_secant_equation():
     Hn = np.asarray(_sr1(jnp.asarray(H), jnp.asarray(s), jnp.asarray(y)))
     np.testing.assert_allclose(Hn @ s, y, rtol=1e-12, atol=1e-13)
     np.testing.assert_allclose(Hn, Hn.T, rtol=0, atol=1e-14)
+    # the rank-one update itself (BFGS meets the same secant equation): r rᵀ/(r·s)
+    r = y - H @ s
+    np.testing.assert_allclose(Hn - H, np.outer(r, r) / (r @ s), rtol=1e-13, atol=1e-14)
     r = rng.normal(size=5)
     r -= (r @ s) / (s @ s) * s  # r ⊥ s: r·s is round-off, the update is skipped
     np.testing.assert_array_equal(np.asarray(_sr1(jnp.asarray(H), jnp.asarray(s),
                                                   jnp.asarray(H @ s + r))), H)
+
+
+def test_trust_radius_follows_the_ratio_of_decreases():
+    """Five positions, each trial's ratio ρ = (J − J_trial)/predicted set by hand: a good step
+    at the radius doubles it up to max_radius, a good step well inside keeps it, a step that
+    raises J or gives NaN is rejected and the radius shrinks to shrink × its length, the
+    start's zero step (``first``) is taken with the radius kept; with ``exact`` an accepted
+    trial brings its Hessian, a rejected one the SR1 update of the old."""
+    from fdjax._tune._newton import _accept, _sr1
+
+    n, p = 5, 2
+    theta = jnp.zeros((n, p))
+    j = jnp.full(n, 10.0)
+    g = jnp.ones((n, p))
+    H = jnp.broadcast_to(jnp.eye(p), (n, p, p))
+    delta = jnp.array([3.0, 3.0, 3.0, 3.0, 0.7])
+    step = jnp.array([[3.0, 0.0], [1.0, 0.0], [0.0, 2.0], [2.0, 0.0], [0.0, 0.0]])
+    pred = jnp.array([1.0, 1.0, 1.0, 1.0, 0.0])
+    j_t = jnp.array([9.0, 9.0, 10.5, jnp.nan, 10.0])     # ρ = 1, 1, −0.5, NaN, start
+    g_t = 2.0 * g
+    H_t = 3.0 * H
+    first = jnp.array([False] * 4 + [True])
+    th, jn, gn, Hn, dn, acc = _accept(theta, j, g, H, delta, step, pred, j_t, g_t, H_t, 0.25,
+                                      5.0, True, True, first)
+    np.testing.assert_array_equal(acc, [True, True, False, False, True])
+    np.testing.assert_allclose(dn, [5.0, 3.0, 0.25 * 2.0, 0.25 * 2.0, 0.7], rtol=1e-15)
+    np.testing.assert_array_equal(th, np.where(np.asarray(acc)[:, None], step, 0.0))
+    np.testing.assert_array_equal(jn, [9.0, 9.0, 10.0, 10.0, 10.0])
+    np.testing.assert_array_equal(gn[2], g[2])
+    np.testing.assert_array_equal(Hn[0], H_t[0])
+    np.testing.assert_allclose(Hn[2], _sr1(H[2], step[2], g_t[2] - g[2]), rtol=1e-15)
 
 
 @pytest.mark.parametrize("kwargs, match", [

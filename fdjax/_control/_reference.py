@@ -84,7 +84,7 @@ def reference_controller(drive: BallScrewDrive | None = None,
     """
     if drive is None:
         drive = reference_drive()
-    _, k_ffa = rigid_feedforward(drive, servo)
+    _, k_ffa = _rigid_feedforward(drive, servo, "reference_controller")
     return DoubleLoop(200.0, 5400.0, 60.0, k_ffv=1.0, k_ffa=k_ffa, mcm=reference_mcm())
 
 
@@ -131,9 +131,15 @@ def rigid_feedforward(
     Returns:
         (k_ffv in A·s/m, k_ffa in A·s²/m).
     """
-    instance(drive, BallScrewDrive, "rigid_feedforward(drive=...)")
+    return _rigid_feedforward(drive, servo, "rigid_feedforward")
+
+
+def _rigid_feedforward(drive, servo, fn: str):
+    """:func:`rigid_feedforward`, its arguments named as those of ``fn``, the function the
+    user called."""
+    instance(drive, BallScrewDrive, f"{fn}(drive=...)")
     if servo is None:
         servo = reference_servo()
-    instance(servo, Servo, "rigid_feedforward(servo=...)")
+    instance(servo, Servo, f"{fn}(servo=...)")
     scale = servo.k_motor * jnp.asarray(drive.screw.ratio)
     return drive.reflected_damping() / scale, drive.reflected_inertia() / scale

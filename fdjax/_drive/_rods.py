@@ -57,6 +57,11 @@ class Rod(eqx.Module):
     loss_factor: Float[Array, ""] = _checks.nonnegative_field("Rod(loss_factor=...)", default=0.0)
     retardation: Float[Array, ""] = _checks.nonnegative_field("Rod(retardation=...)", default=0.0)
 
+    def __check_init__(self):
+        # a length in metres: a concrete value beyond any feed drive's was given in mm
+        _checks.at_most(self.length, _checks.LONGEST_TRAVEL_M, "Rod(length=...)",
+                        "no ball screw is longer")
+
     @classmethod
     def axial(
         cls,
@@ -102,7 +107,10 @@ class Rod(eqx.Module):
         name, value = modulus
         d = _checks.positive(_scalar(diameter), where.format("diameter"))
         section = jnp.pi * d**power / (4 if power == 2 else 32)
-        return cls(_checks.positive(_scalar(length), where.format("length")),
+        length = _checks.at_most(_checks.positive(_scalar(length), where.format("length")),
+                                 _checks.LONGEST_TRAVEL_M, where.format("length"),
+                                 "no ball screw is longer")
+        return cls(length,
                    _checks.positive(_scalar(value), where.format(name)) * section,
                    _checks.positive(_scalar(density), where.format("density")) * section,
                    _checks.nonnegative(_scalar(loss_factor), where.format("loss_factor")),

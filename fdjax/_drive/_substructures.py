@@ -52,6 +52,10 @@ LARGEST_SCREW_DIAMETER_M = 1.0
 """No ball screw is thicker (the largest catalogue screws are about 0.2 m): a screw's diameter
 or bore beyond it (m) was given in mm."""
 
+HIGHEST_POINT_M = 5.0
+"""No point of a feed drive's carriage or table lies farther from the pitch centre (a tall
+gantry's tool is about 2 m from its guideways): a height beyond it (m) was given in mm."""
+
 LARGEST_LEAD_M = 0.5
 """No ball screw has a longer lead (the longest catalogue leads are about 0.1–0.2 m per
 revolution): a lead beyond it (m) was given in mm."""
@@ -290,6 +294,12 @@ class Axial(_LineSubsystem):
         return tridiagonal_receptance(diag, off, [(1, 1)])[0]
 
 
+def _check_height(value, where: str) -> None:
+    """A height (m) given in mm is refused with its value in metres (:data:`HIGHEST_POINT_M`)."""
+    _checks.at_most(value, HIGHEST_POINT_M, where, "no point of a carriage lies farther from "
+                    "its pitch centre", magnitude=True)
+
+
 class Table(eqx.Module):
     r"""A second sliding body on the carriage, compliant in the drive's direction.
 
@@ -316,6 +326,9 @@ class Table(eqx.Module):
     stiffness: Float[Array, ""] = _checks.positive_field("Table(stiffness=...)")
     damping: Float[Array, ""] = _checks.nonnegative_field("Table(damping=...)", default=0.0)
     height: Float[Array, ""] = _checks.finite_field("Table(height=...)", default=0.0)
+
+    def __check_init__(self):
+        _check_height(self.height, "Table(height=...)")
 
 
 class Carriage(eqx.Module):
@@ -371,6 +384,8 @@ class Carriage(eqx.Module):
     table: Table | None = None
 
     def __check_init__(self):
+        for name in ("nut_height", "scale_height", "tool_height"):
+            _check_height(getattr(self, name), f"Carriage({name}=...)")
         if self.table is not None and not isinstance(self.table, Table):
             raise ValueError(
                 f"`Carriage(table=...)` must be a fdjax.Table or None, got "
