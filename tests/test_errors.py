@@ -22,7 +22,8 @@ FREQ = np.linspace(10.0, 100.0, 5)
         (lambda: fdjax.chain_model([100.0, 1.0], [-5.0], [0.0]),
          r"chain_model\(stiffnesses=\.\.\.\)` must be finite and positive, got -5"),
         (lambda: fdjax.chain_model([100.0, 1.0], [1e7, 1e7], [0.0]),
-         r"must have 1 entries for 2 masses"),
+         r"`chain_model\(stiffnesses=\.\.\., dampings=\.\.\.\)` must have 1 entries for 2 masses, "
+         r"got 2 and 1"),
         (lambda: fdjax.LumpedModel([[1.0, 0], [0, -1.0]], np.eye(2), np.eye(2)),
          r"LumpedModel\(mass=\.\.\.\)` must be symmetric positive definite"),
         (lambda: fdjax.Rod.axial(diameter=0.03, length=0.0),
@@ -72,18 +73,19 @@ def test_travel_beyond_screw():
 @pytest.mark.parametrize(
     "freq, match",
     [
-        ([10.0, 5.0, 20.0], r"frf\(freq_hz=\.\.\.\)` must be strictly increasing"),
-        ([10.0, 10.0], r"must be strictly increasing"),
-        ([0.0, 5.0], r"frf\(freq_hz=\.\.\.\)` must be finite and positive, got 0"),
-        ([-1.0, 5.0], r"must be finite and positive, got -1"),
-        ([1.0, np.nan], r"must be finite and positive, got nan"),
-        (np.ones((2, 2)), r"must be a 1-D grid"),
+        ([10.0, 5.0, 20.0], r"must be strictly increasing, got \[10\., +5\., 20\.\]"),
+        ([10.0, 10.0], r"must be strictly increasing, got \[10\., 10\.\]"),
+        ([0.0, 5.0], r"must be finite and positive, got 0 at index 0"),
+        ([-1.0, 5.0], r"must be finite and positive, got -1 at index 0"),
+        ([1.0, np.nan], r"must be finite and positive, got nan at index 1"),
+        (np.ones((2, 2)), r"must be a 1-D grid of at least one frequency, got shape \(2, 2\)"),
     ],
 )
 def test_bad_frequency_grids(freq, match):
-    with pytest.raises(ValueError, match=match):
+    """Named with the method the user called, the drive's or the lumped model's."""
+    with pytest.raises(ValueError, match=r"^`BallScrewDrive\.frf\(freq_hz=\.\.\.\)` " + match):
         fdjax.reference_drive().frf([0.3], freq)
-    with pytest.raises(ValueError, match=match):
+    with pytest.raises(ValueError, match=r"^`LumpedModel\.frf\(freq_hz=\.\.\.\)` " + match):
         fdjax.three_mass().frf(freq)
 
 
@@ -95,7 +97,8 @@ def test_errors_under_jit():
         return drive.frf(y, FREQ)
 
     assert f(jnp.array([0.3])).shape == (1, 5, 3, 2)
-    with pytest.raises(CHECK_FAILED, match=r"inside the travel"):
+    with pytest.raises(CHECK_FAILED, match=r"`BallScrewDrive\.frf\(position_m=\.\.\.\)` must be "
+                                           r"inside the travel"):
         jax.block_until_ready(f(jnp.array([0.9])))
 
     @jax.jit
@@ -144,7 +147,10 @@ def test_position_in_millimetres_says_so():
     with pytest.raises(ValueError, match=r"`tune_local\(positions_m=\.\.\.\)` .* got 250 at "
                                          r"index 0 and 1 more" + hint):
         fdjax.tune_local(par, obj, drive, [250.0, 400.0], ref)
-    with pytest.raises(ValueError, match=r"got 900 at index 0$"):  # 0.9 m: outside in m and mm
+    # 0.9 m: outside in m and in mm
+    with pytest.raises(ValueError, match=r"^`BallScrewDrive\.frf\(position_m=\.\.\.\)` must be "
+                                         r"inside the travel \[0\.1, 0\.7\] m, got 900 at "
+                                         r"index 0$"):
         drive.frf([900.0], FREQ)
 
 
@@ -167,9 +173,9 @@ def test_public_docstrings_carry_their_module_notes():
         value = getattr(fdjax, name)
         if not callable(value):
             continue
-        doc = value.__doc__ or ""
-        assert doc.strip(), name
-        assert "module docstring" not in doc, name
+        doc = " ".join((value.__doc__ or "").split())   # a phrase broken over lines too
+        assert doc, name
+        assert "module docstring" not in doc and "module docs" not in doc, name
         if "notes below" in doc:
             first = sys.modules[value.__module__].__doc__.strip().splitlines()[0]
             assert first.strip() in doc, name
@@ -188,7 +194,8 @@ def test_more_inputs_are_named_before_any_work():
         (lambda: dataclasses.replace(drive, travel_m=(0.1, 0.7, 0.9)),
          r"`BallScrewDrive\(travel_m=\.\.\.\)` must be a \(min, max\) pair of numbers in m"),
         (lambda: dataclasses.replace(drive, travel_m=(100.0, 700.0)),
-         r"table positions are in metres: 700 mm is 0\.7 m"),
+         r"`BallScrewDrive\(travel_m=\.\.\.\)` must be a \(min, max\) pair in m, got \(100\.0, "
+         r"700\.0\); table positions are in metres: 700 mm is 0\.7 m"),
         (lambda: fdjax.simulate(loop, drive, ref, position_m=0.3, moving="no"),
          r"`simulate\(moving=\.\.\.\)` must be a bool", TypeError),
         (lambda: fdjax.simulate(loop, drive, ref, position_m=0.3, disturbance=np.full(n, np.nan)),
@@ -205,7 +212,8 @@ def test_more_inputs_are_named_before_any_work():
          r"`DiscreteFilter\(parallel_sos=\.\.\.\)` must hold finite rows .* a0 ≠ 0"),
         (lambda: fdjax.LTI(np.eye(2), np.ones((3, 1)), np.ones((1, 2)), np.zeros((1, 1))),
          r"`LTI\(A=\.\.\., B=\.\.\., C=\.\.\., D=\.\.\.\)` must have shapes"),
-        (lambda: drive.frf(0.3, []), r"must be a 1-D grid of at least one frequency"),
+        (lambda: drive.frf(0.3, []), r"`BallScrewDrive\.frf\(freq_hz=\.\.\.\)` must be a 1-D "
+         r"grid of at least one frequency, got shape \(0,\)"),
         (lambda: fdjax.jerk_limited("0.3", 0.1, 1.0, 100.0),
          r"`jerk_limited\(distance=\.\.\.\)` must be a number or an array of numbers, got '0\.3'",
          TypeError),
@@ -238,15 +246,28 @@ def test_figures_take_one_position_and_missing_values():
     drive = fdjax.reference_drive()
     f = np.geomspace(20.0, 3000.0, 100)
     H = np.asarray(drive.frf(0.4, f))
-    plots.plot_frf_family(0.4, f, H[0])
+    fig = plots.plot_frf_family(0.4, f, H[0])
+    assert [len(a.lines) for a in fig.axes] == [1] * 6          # the six entries at one position
     h = H[:, :, 1, 0].copy()
     h[0, 3] = np.nan
-    plots.plot_frf_cloud(0.4, f, h)
-    plots.plot_resonant_phase([0.1, 0.2, 0.3], np.array([[50, 100], [51, np.nan], [52, 101.0]]),
-                              np.array([[-100, -200], [-110, np.nan], [-120, -190.0]]))
-    plots.plot_rms_over_travel([100, 200], {"a": {"rms_error_um": [None, None],
-                                                  "stable": [False, False],
-                                                  "modulus_margin": [0.1, 0.2]}})
+    fig = plots.plot_frf_cloud(0.4, f, h)
+    assert len(fig.axes) == 2 and all(a.collections for a in fig.axes)
+    # a mode missing at 200 mm is a gap in its curves, the other points drawn
+    fig = plots.plot_resonant_phase([0.1, 0.2, 0.3],
+                                    np.array([[50, 100], [51, np.nan], [52, 101.0]]),
+                                    np.array([[-100, -200], [-110, np.nan], [-120, -190.0]]))
+    phase, freq = fig.axes
+    np.testing.assert_array_equal(phase.lines[1].get_xdata(), [100.0, 200.0, 300.0])   # in mm
+    np.testing.assert_array_equal(phase.lines[1].get_ydata(), [-200.0, np.nan, -190.0])
+    np.testing.assert_array_equal(freq.lines[1].get_ydata(), [100.0, np.nan, 101.0])
+    np.testing.assert_array_equal(freq.lines[0].get_ydata(), [50.0, 51.0, 52.0])
+    # a controller unstable everywhere: no error drawn, a marker at each position
+    fig = plots.plot_rms_over_travel([100, 200], {"a": {"rms_error_um": [None, None],
+                                                        "stable": [False, False],
+                                                        "modulus_margin": [0.1, 0.2]}})
+    rms, margin = fig.axes
+    assert np.all(np.isnan(rms.lines[0].get_ydata())) and len(rms.lines[1].get_ydata()) == 2
+    np.testing.assert_array_equal(margin.lines[0].get_ydata(), [0.1, 0.2])
     with pytest.raises(ValueError, match=r"`plot_tracking\(runs=\.\.\.\)` must hold at least one"):
         plots.plot_tracking({}, title="none")
     plt.close("all")
@@ -522,11 +543,13 @@ def test_a_position_in_mm_under_jit_says_so():
     picks the sentence by whether the value lies inside once divided by 1000."""
     drive = fdjax.reference_drive()
     frf = eqx.filter_jit(lambda y: drive.frf(y, jnp.geomspace(10.0, 100.0, 3)))
-    with pytest.raises(CHECK_FAILED, match=r"must be inside the travel \[0\.1, 0\.7\] m; table "
+    with pytest.raises(CHECK_FAILED, match=r"`BallScrewDrive\.frf\(position_m=\.\.\.\)` must be "
+                                           r"inside the travel \[0\.1, 0\.7\] m; table "
                                            r"positions are in metres \(the value lies inside "
                                            r"once divided by 1000: it was given in mm\)"):
         jax.block_until_ready(frf(jnp.asarray([300.0])))
-    with pytest.raises(CHECK_FAILED, match=r"must be inside the travel \[0\.1, 0\.7\] m") as info:
+    with pytest.raises(CHECK_FAILED, match=r"`BallScrewDrive\.frf\(position_m=\.\.\.\)` must be "
+                                           r"inside the travel \[0\.1, 0\.7\] m") as info:
         jax.block_until_ready(frf(jnp.asarray([0.9])))
     assert "given in mm" not in str(info.value)
 

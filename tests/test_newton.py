@@ -76,6 +76,17 @@ def test_trust_region_step_solves_the_subproblem():
     with pytest.raises(ValueError, match=r"must have shapes \(p,\) and \(p, p\), got \(3,\) "
                                          r"and \(2, 2\)"):
         trust_region_step(np.ones(3), np.eye(2), 1.0)
+    # a NaN or ∞ in g or H gave a NaN step silently
+    bad_H = np.eye(3)
+    bad_H[1, 2] = np.inf
+    for args, name in (((np.array([1.0, np.nan, 0.0]), np.eye(3)), "g"), ((np.ones(3), bad_H),
+                                                                          "H")):
+        with pytest.raises(ValueError, match=rf"`trust_region_step\({name}=\.\.\.\)` must be "
+                                             r"finite \(no NaN or inf\), got"):
+            trust_region_step(*args, 1.0)
+        with pytest.raises(CHECK_FAILED, match=rf"`trust_region_step\({name}=\.\.\.\)` must be "
+                                               r"finite"):
+            jax.block_until_ready(jax.jit(trust_region_step)(*args, 1.0))
 
 
 def _problem():

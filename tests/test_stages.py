@@ -158,7 +158,8 @@ def _least_over_breaks(m, name, absolute):
     return min(abs(v) for v in vals) if absolute else min(vals)
 
 
-def test_evaluate_is_simulate_stability_and_loop_margins_at_each_position(drive, servo):
+def test_evaluate_is_simulate_stability_and_loop_margins_at_each_position(drive, servo,
+                                                                         monkeypatch):
     """evaluate on two shipped designs (the robust MCM, a fixed double loop, and the
     end-to-end ATA schedule, which evaluate runs in one program with it) and on the reference
     controller (unstable toward the screw end) at three positions: its RMS error is
@@ -170,8 +171,21 @@ def test_evaluate_is_simulate_stability_and_loop_margins_at_each_position(drive,
     controllers = {"mcm_robust": designs["mcm_robust"], "mcm_ata_e2e": designs["mcm_ata_e2e"],
                    "reference": ref}
     y = np.array([0.1, 0.43, 0.7])
+    from fdjax._tune import _synthesis
+
+    batches = []   # the positions of each program evaluate runs
+
+    def counted(controllers, drive, ys, **kw):
+        batches.append(np.asarray(ys))
+        return point_checks(controllers, drive, ys, **kw)
+
+    point_checks = _synthesis.point_checks
+    monkeypatch.setattr(_synthesis, "point_checks", counted)
     out = fdjax.evaluate(controllers, drive, y, progress=False)
     assert list(out) == list(controllers)
+    # three double loops of the same shapes (the schedule's too, at each position): one program
+    assert len(batches) == 1
+    np.testing.assert_array_equal(batches[0], np.tile(y, 3))
     f = np.geomspace(5.0, 0.995 * 0.5 / float(servo.period), 2000)
     motion = fdjax.tuning_motion()
     seen_unstable = False

@@ -66,13 +66,15 @@ def trust_region_step(
 
     p is characterised by (H + λI) p = −g, H + λI positive semi-definite, λ ≥ 0 and
     λ (Δ − ‖p‖) = 0 (Moré & Sorensen 1983); the bisection meets ‖p‖ = Δ to ~1e-15 relative.
-    Pure and differentiable-free (``jit``, ``vmap``); the radius is checked (finite and
-    positive) under ``jit`` too."""
+    Pure and differentiable-free (``jit``, ``vmap``); g and H are checked finite, the radius
+    finite and positive, under ``jit`` too."""
     g = jnp.asarray(g, jnp.float64)
     H = jnp.asarray(H, jnp.float64)
     if g.ndim != 1 or H.shape != (g.shape[0], g.shape[0]):
         raise ValueError(f"`trust_region_step(g=..., H=...)` must have shapes (p,) and (p, p), "
                          f"got {g.shape} and {H.shape}")
+    g = _checks.finite(g, "trust_region_step(g=...)")
+    H = _checks.finite(H, "trust_region_step(H=...)")
     where = "trust_region_step(radius=...)"
     delta = _checks.positive(_checks.real_scalar(radius, where), where)
     return _trust_region_step(g, H, delta)
