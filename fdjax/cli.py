@@ -561,7 +561,7 @@ def modes(out: str | None, n_positions: int, n_modes: int | None, source: str) -
     lo, hi = drive.travel_m
     pos = np.linspace(lo, hi, n_positions)
     f_lo, f_hi = MODES_BAND_HZ
-    if source == "fit":  # minutes of work: say so before it starts
+    if source == "fit":  # seconds to minutes of work: say so before it starts
         # measured on 2 cores: 17 s for 13 positions, 45 s for 61, 142 s for 200
         seconds = 10 + 0.7 * n_positions
         took = f"{seconds:.0f} s" if seconds < 90 else f"{seconds / 60:.0f} min"
