@@ -80,7 +80,8 @@ def inside(value, lo: float, hi: float, where: str, what: str = "the travel"):
     if not is_concrete(value):  # traced: the same sentences, without the value
         value = jnp.asarray(value)
         bad = jnp.logical_not(jnp.all(ok(value)))
-        in_mm = jnp.all(ok(value) | ok(value / 1000))
+        # the hint only where the check fails (under vmap each position picks its sentence)
+        in_mm = bad & jnp.all(ok(value) | ok(value / 1000))
         return eqx.branched_error_if(
             value, bad, in_mm.astype(jnp.int32),
             [f"`{where}` must be {expected}",

@@ -202,7 +202,20 @@ def test_more_inputs_are_named_before_any_work():
          r"`simulate\(disturbance=\.\.\.\)` must be finite"),
         (lambda: fdjax.simulate(loop, drive, ref, fdjax.PadeODE(), position_m=0.3,
                                 duration=1e-6),
-         r"`simulate\(duration=\.\.\.\)` must span at least one output period of PadeODE"),
+         r"`simulate\(duration=\.\.\.\)` must span at least one output period of PadeODE "
+         r"\(0\.000125 s\), got 1e-06 s"),
+        # an exponential solver of another step: an error deep inside diffrax at run time
+        (lambda: fdjax.simulate(loop, drive, ref, fdjax.PadeODE(
+            dt=1e-4, solver=fdjax.ExponentialFOH(1.25e-4)), position_m=0.3),
+         r"`PadeODE\(solver=\.\.\.\)` is an ExponentialFOH stepping 0\.000125 s, which must be "
+         r"the output period 0\.0001 s"),
+        # a run of one sample gave an RMS error of 0; 0.6 periods of PadeODE ran one period
+        (lambda: fdjax.simulate(loop, drive, ref, position_m=0.3, duration=1e-5),
+         r"`simulate\(duration=\.\.\.\)` must span at least one output period of SampledData "
+         r"\(0\.000125 s\), got 1e-05 s"),
+        (lambda: fdjax.simulate(loop, drive, ref, fdjax.PadeODE(dt=1e-3), position_m=0.3,
+                                duration=6e-4),
+         r"must span at least one output period of PadeODE \(0\.001 s\), got 0\.0006 s"),
         (lambda: fdjax.simulate(loop, drive, ref, position_m=0.3, duration=1e6),
          r"`simulate\(duration=\.\.\.\)`: 1e\+06 s is 8000000001 output samples .* GiB, more "
          r"than the .* GiB of memory available"),
@@ -552,6 +565,14 @@ def test_a_position_in_mm_under_jit_says_so():
                                            r"inside the travel \[0\.1, 0\.7\] m") as info:
         jax.block_until_ready(frf(jnp.asarray([0.9])))
     assert "given in mm" not in str(info.value)
+    # under vmap each position picks its sentence: a position inside (which would lie outside
+    # once divided by 1000) no longer gives the hint to another that is merely outside
+    batched = jax.vmap(lambda y: drive.frf(y, jnp.geomspace(10.0, 100.0, 3)))
+    with pytest.raises(CHECK_FAILED, match=r"must be inside the travel") as info:
+        jax.block_until_ready(batched(jnp.asarray([0.2, 0.8])))
+    assert "given in mm" not in str(info.value)
+    with pytest.raises(CHECK_FAILED, match=r"it was given in mm"):
+        jax.block_until_ready(batched(jnp.asarray([0.2, 300.0])))
 
 
 def test_tuners_name_a_bad_optimiser_and_pid_corner():
@@ -592,6 +613,16 @@ def test_a_motion_out_of_the_travel_is_refused_before_the_run():
     with pytest.raises(ValueError, match=r"reaches 0\.815 m, outside the travel \[0\.1, 0\.7\] "
                                          r"m$"):
         fdjax.simulate(loop, drive, fdjax.reciprocating(stroke=0.7), position_m=0.115)
+    # a run of part of the motion is judged by the positions it runs through, eagerly as under
+    # jit (eagerly the whole motion's reach refused it): 10 ms of a 5 mm stroke from 0.698 m
+    move = fdjax.reciprocating(stroke=5e-3, v_max=0.1, a_max=2.0, j_max=200.0)
+    run = lambda p: fdjax.simulate(loop, drive, move, position_m=p, duration=0.01)  # noqa: E731
+    eager, jitted = run(0.698), eqx.filter_jit(run)(0.698)
+    assert eager.message == jitted.message == "simulation ok at table position 0.698 m"
+    np.testing.assert_allclose(float(eager.rms_error()), float(jitted.rms_error()), rtol=1e-12)
+    assert float(np.max(eager.position_m)) < 0.7
+    with pytest.raises(ValueError, match=r"reaches 0\.703 m, outside the travel"):
+        fdjax.simulate(loop, drive, move, position_m=0.698)
 
 
 def test_a_motion_built_inside_jit_says_what_to_give():
@@ -602,10 +633,16 @@ def test_a_motion_built_inside_jit_says_what_to_give():
     loop = fdjax.reference_controller(drive)
     run = eqx.filter_jit(lambda p: fdjax.simulate(loop, drive, fdjax.reciprocating(),
                                                   position_m=p).rms_error())
-    with pytest.raises(ValueError, match=r"`simulate\(reference=\.\.\.\)` was built inside a "
-                                         r"traced function .* build the motion outside, or give "
+    with pytest.raises(ValueError, match=r"`simulate\(reference=\.\.\.\)` was built inside, or "
+                                         r"passed into, a traced function .* build the motion "
+                                         r"outside and close over it, or give "
                                          r"`simulate\(duration=\.\.\.\)` as a number"):
         run(0.3)
+    # passed in as an argument: the same sentence
+    move = fdjax.reciprocating()
+    with pytest.raises(ValueError, match=r"`simulate\(reference=\.\.\.\)` was built inside, or "
+                                         r"passed into, a traced function"):
+        eqx.filter_jit(lambda m: fdjax.simulate(loop, drive, m, position_m=0.3).rms_error())(move)
 
 
 def test_batches_of_twins_and_frf_arrays_where_a_model_is_needed():
@@ -657,6 +694,22 @@ def test_a_shared_discretisation_serves_its_own_design_only():
     with pytest.raises(ValueError, match=r"`simulate\(method=\.\.\.\)` " + other):
         fdjax.simulate(ref, fdjax.state_space(drive, 0.6, twin=opts), fdjax.reciprocating(),
                        shared)
+    # traced arguments cannot be compared with it: under jit another twin ran the shared
+    # one's, under grad the gradient through it was zero; refused when it is traced
+    motion = fdjax.reciprocating(stroke=1e-3, v_max=0.05, a_max=2.0, j_max=400.0, cycles=1)
+    traced = r"`simulate\(method=\.\.\.\)` holds a discretisation built outside this traced "
+    with pytest.raises(ValueError, match=traced):
+        eqx.filter_jit(lambda p: fdjax.simulate(ref, p, motion, shared).rms_error())(
+            fdjax.state_space(drive, 0.6, twin=opts))
+    with pytest.raises(ValueError, match=traced + r".*gradient through it would be zero"):
+        eqx.filter_grad(lambda c: fdjax.simulate(c, twin, motion, shared).rms_error())(ref)
+    # built inside the traced function it follows the design: the gradient is the plain one's
+    g_shared = eqx.filter_grad(lambda c: fdjax.simulate(
+        c, twin, motion, fdjax.SampledData().sharing(c, twin, fdjax.Servo())).rms_error())(ref)
+    g_plain = eqx.filter_grad(lambda c: fdjax.simulate(c, twin, motion).rms_error())(ref)
+    # the same arithmetic in another order: measured 1.7e-12 relative
+    np.testing.assert_allclose(float(g_shared.log_kv), float(g_plain.log_kv), rtol=1e-11)
+    assert float(g_plain.log_kv) != 0.0
 
 
 def test_a_dead_channel_is_refused_under_vmap_too():

@@ -152,16 +152,25 @@ class SampledData(AbstractLoopModel):
         """A shared discretisation (:meth:`sharing`) serves the one design and twin it was
         built from: another plant than one twin is refused, and, where the arguments are
         concrete (an eager call), another controller, twin or servo is found by building the
-        discretisation again and comparing."""
+        discretisation again and comparing.  One built from concrete values and used with
+        traced arguments (inside ``jit``/``vmap``/``grad``) is refused: it cannot follow them
+        (another position or design would run the shared one's, and the gradient through it
+        is zero)."""
         if self.shared is None:
             return
         if plant is None or plant.A.ndim != 2:
             raise ValueError(f"`{where}` holds the discretisation of one design around one twin "
                              "(SampledData.sharing): give that twin as the plant (not a drive, "
                              "a batch or an FRF array), or use SampledData() without it")
-        leaves = jax.tree_util.tree_leaves(
-            eqx.filter((self.shared, controller, plant, servo), eqx.is_array))
-        if all(is_concrete(x) for x in leaves):
+        concrete = lambda tree: all(is_concrete(x) for x in jax.tree_util.tree_leaves(  # noqa: E731
+            eqx.filter(tree, eqx.is_array)))
+        if concrete(self.shared) and not concrete((controller, plant)):
+            raise ValueError(f"`{where}` holds a discretisation built outside this traced "
+                             "function (SampledData.sharing of concrete values): it cannot "
+                             "follow the traced controller or twin (their gradient "
+                             "through it would be zero); call sharing inside the traced "
+                             "function, or use SampledData()")
+        if concrete((self.shared, controller, plant, servo)):
             fresh = _parts(SampledData(self.filter_method), controller, plant, servo)
             if not bool(eqx.tree_equal(fresh, self.shared)):
                 raise ValueError(f"`{where}` holds the discretisation of another design, twin "
@@ -513,8 +522,18 @@ class PadeODE(AbstractLoopModel):
                                               position_m)
 
     def output_period(self, servo) -> float:
-        """The spacing of the run's output samples (s): ``dt``, or the servo's period."""
-        return float(servo.period) if self.dt is None else float(self.dt)
+        """The spacing of the run's output samples (s): ``dt``, or the servo's period.  An
+        :class:`ExponentialFOH` solver stepping another length on the output grid is refused
+        here, before the run (its steps must be exactly its ``dt``)."""
+        dt = float(servo.period) if self.dt is None else float(self.dt)
+        h = getattr(self.solver, "dt", None)
+        if (isinstance(self.solver, ExponentialFOH) and self.stepsize_controller is None
+                and abs(float(h) - dt) > 1e-9 * dt):
+            raise ValueError(f"`PadeODE(solver=...)` is an ExponentialFOH stepping {h:.6g} s, "
+                             f"which must be the output period {dt:.6g} s (PadeODE(dt=...), "
+                             "else the servo's period): give ExponentialFOH of that step, or "
+                             "leave solver=None")
+        return dt
 
     def _solve(self, term, y0, t, dt: float):
         solver = self.solver if self.solver is not None else ExponentialFOH(dt)

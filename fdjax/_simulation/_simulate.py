@@ -30,7 +30,7 @@ from .._control._servo import Servo
 from .._drive._model import BallScrewDrive
 from .._drive._twin import StateSpace, TwinOptions, _twin_options, state_space
 from .._results import RESULTS
-from ._methods import AbstractLoopModel, PadeODE, SampledData
+from ._methods import AbstractLoopModel, SampledData
 from ._moving import MovingPlant
 
 __all__ = ["Simulation", "simulate", "SIMULATION_OUTPUTS"]
@@ -176,9 +176,10 @@ def simulate(
         servo: the servo's hardware (period, delay, motor constant).
         position_m: table position Y₀ (m) for a drive plant; Y₀ + r(t) must stay inside the
             drive's travel.
-        duration: simulated time (s), static; default the reference's ``duration``.  A run
-            holds about 320 bytes per output sample; one that would not fit in the memory
-            available is refused before it starts.
+        duration: simulated time (s), static; default the reference's ``duration``.  At
+            least one output period; the run covers it in whole output periods (rounded to
+            the nearest).  A run holds about 320 bytes per output sample; one that would not
+            fit in the memory available is refused before it starts.
         disturbance: force F3 at the tool point (N) on the output grid, (n,); default 0.
         moving: moving-table mode (a drive plant; slower: the loop is rebuilt every step).
         twin: how a drive plant becomes its twin (:class:`fdjax.TwinOptions`: mesh, kept
@@ -223,9 +224,10 @@ def simulate(
             raise ValueError(f"`{fn}(duration=...)` must be a concrete number (it sets the "
                              "number of output samples), not a value traced by jit")
         raise ValueError(
-            f"`{fn}(reference=...)` was built inside a traced function (jit, vmap, grad), so "
-            "its duration, which sets the number of output samples, is not known there: build "
-            f"the motion outside, or give `{fn}(duration=...)` as a number")
+            f"`{fn}(reference=...)` was built inside, or passed into, a traced function (jit, "
+            "vmap, grad), so its duration, which sets the number of output samples, is not "
+            f"known there: build the motion outside and close over it, or give "
+            f"`{fn}(duration=...)` as a number")
     duration = _checks.concrete_float(duration, f"{fn}(duration=...)")
     if not (math.isfinite(duration) and duration > 0):
         raise ValueError(f"`{fn}(duration=...)` must be positive, got {duration:.6g}")
@@ -237,10 +239,9 @@ def simulate(
                          f"{fn}(method=...)")
     dt = method.output_period(servo)
     n = int(round(duration / dt)) + 1
-    if n < 2 and isinstance(method, PadeODE):
+    if duration < dt * (1 - 1e-9):  # a run of one sample (or PadeODE's of one output time)
         raise ValueError(f"`{fn}(duration=...)` must span at least one output period of "
-                         f"PadeODE ({dt:.6g} s; the ODE solver needs two output times), got "
-                         f"{duration:.6g} s")
+                         f"{method.name} ({dt:.6g} s), got {duration:.6g} s")
     need, avail = n * _BYTES_PER_SAMPLE, _memory.available_bytes()
     if avail is not None and need > avail:
         raise ValueError(
@@ -257,7 +258,7 @@ def simulate(
         pos0 = controller.check_position(pos0, f"{fn}(position_m=...)")
         lo, hi = plant.travel_m
         if throw:  # else the run's result says out_of_travel
-            _check_reach(reference, pos0, lo, hi, fn)
+            _check_reach(reference, pos0, lo, hi, fn, duration)
         twin = twin.resolve(plant, fn)
         travel = (float(lo), float(hi))
     elif isinstance(plant, StateSpace):
@@ -309,12 +310,17 @@ def simulate(
     return sim
 
 
-def _check_reach(reference, pos0, lo, hi, fn):
-    """Before the run: a reference with exact extremes (a :class:`fdjax.Trajectory`) keeps
-    the table inside the travel from ``pos0``, or the error says where it goes (and, for a
-    move of a metre or more that fits once divided by 1000, that it was given in mm)."""
+def _check_reach(reference, pos0, lo, hi, fn, duration):
+    """Before a run of the whole motion: a reference with exact extremes (a
+    :class:`fdjax.Trajectory`) keeps the table inside the travel from ``pos0``, or the error
+    says where it goes (and, for a move of a metre or more that fits once divided by 1000,
+    that it was given in mm).  A run of part of the motion (``duration`` shorter) is judged by
+    the positions it runs through, as under ``jit``."""
     reach = getattr(reference, "position_range", None)
     if reach is None or not _checks.is_concrete(pos0):
+        return
+    whole = getattr(reference, "duration", None)
+    if whole is None or not _checks.is_concrete(whole) or duration < float(whole):
         return
     r_lo, r_hi = reach()
     if not (_checks.is_concrete(r_lo) and _checks.is_concrete(r_hi)):
