@@ -232,6 +232,8 @@ def _entry(fn, controller, plant, servo, method, position_m, twin, *,
         checked = controller.check_position(position_m, where)  # None: a fixed controller
         if checked is not None:
             p = (p[0], p[1], jnp.broadcast_to(jnp.asarray(checked, jnp.float64), p[2].shape))
+    elif kind == "model":  # a twin built at its position: a schedule is checked there
+        controller.check_position(p.position_m, f"{fn}(plant=...).position_m")
     if f is not None:
         f = _below_nyquist(f, kind, method, servo, fn)
     method.check_use(controller, p if kind == "model" else None, servo, f"{fn}(method=...)")
@@ -408,8 +410,9 @@ def loop_margins(
     input, at the speed feedback and at the scale.
 
     By default those of the loop as it runs: the sampled loop on the unit circle (module
-    docstring), the margins python-control's ``stability_margins`` gives for the same discrete
-    system.  The open loops are sampled on ``freq_hz``, every crossing is bracketed there and,
+    docstring), the margins python-control's ``stability_margins`` gives for the same frequency
+    response (its polynomial method on the discrete system's transfer function can be far off at
+    this order).  The open loops are sampled on ``freq_hz``, every crossing is bracketed there and,
     for a twin (a drive or a StateSpace), refined by safeguarded Newton steps on the model's own
     L to round-off; the margins are differentiable through the refined crossings.  For an FRF
     array they are interpolated (:func:`stability_margins`).  The grid must bracket every

@@ -75,7 +75,10 @@ def inside(value, lo: float, hi: float, where: str, what: str = "the travel"):
     value that misses the range but lies inside it once divided by 1000 was given in
     millimetres: the message says so, with the value in metres."""
     _numbers(value, where)  # a string or another object that is not numbers: a TypeError
-    ok = lambda p: (p >= lo) & (p <= hi)  # noqa: E731  (NaN fails both comparisons)
+    # the ends with a round-off's slack: np.arange(0.1, 0.7 + 1e-3, 1e-3) ends at
+    # 0.7000000000000005, which is the end of the travel
+    tol = 1e-12 * max(1.0, abs(lo), abs(hi))
+    ok = lambda p: (p >= lo - tol) & (p <= hi + tol)  # noqa: E731  (NaN fails both)
     expected = f"inside {what} [{lo:.6g}, {hi:.6g}] m"
     if not is_concrete(value):  # traced: the same sentences, without the value
         value = jnp.asarray(value)

@@ -549,6 +549,51 @@ def test_a_schedule_names_the_callers_position():
     with pytest.raises(ValueError, match=r"`loop_margins\(position_m=\.\.\.\)` must be inside "
                                          r"the network's travel .* 300 mm is 0\.3 m"):
         fdjax.loop_margins(narrow, H, f, position_m=300.0, **kw)
+    # a twin built at 650 mm: the schedule is checked at the twin's position (the error came
+    # from inside the compiled program, without the value)
+    twin = fdjax.state_space(drive, 0.65, twin=fdjax.TwinOptions(kept_modes=4))
+    with pytest.raises(ValueError, match=r"`check_stability\(plant=\.\.\.\)\.position_m` "
+                                         + travel):
+        fdjax.check_stability(narrow, twin)
+    # a 1 mm grid built by np.arange ends at 0.7000000000000005: the end of the travel
+    grid = np.arange(0.1, 0.7 + 1e-3, 1e-3)
+    assert grid[-1] > 0.7
+    np.testing.assert_array_equal(drive._check_travel(grid[-2:], "certify", "positions_m"),
+                                  grid[-2:])
+    with pytest.raises(ValueError, match=r"got 0\.700001 at index 0"):
+        drive._check_travel([0.700001], "certify", "positions_m")
+
+
+def test_controllers_checked_where_their_values_are_traced():
+    """Checks a constructor makes eagerly, made again where the values are traced: a PID's
+    derivative corner inside a user's law (margins came out for an unstable filter), an
+    interpolated schedule's position in mm under jit (the end design ran); a servo's period
+    given as a NumPy or JAX scalar is a number (it was refused as not a number)."""
+    drive = fdjax.reference_drive()
+    twin = fdjax.state_space(drive, 0.3, twin=fdjax.TwinOptions(kept_modes=4))
+
+    class MyPID(fdjax.AbstractController):
+        wd: jax.Array
+
+        def law(self, position_m):
+            return fdjax.Law((fdjax.Path({"r": 1.0, "x2": -1.0},
+                                         (fdjax.PID(1.5e3, 5e3, 100.0, self.wd),)),))
+
+    f = np.geomspace(1.0, 3000.0, 200)
+    fdjax.loop_margins(MyPID(jnp.asarray(2 * np.pi * 150.0)), twin, f)
+    with pytest.raises(CHECK_FAILED, match=r"`PID\(wd=\.\.\.\)` must be positive"):
+        jax.block_until_ready(fdjax.loop_margins(MyPID(jnp.asarray(-2 * np.pi * 150.0)), twin,
+                                                 f).plant_input.gain_margin_db)
+    designs = fdjax.load_designs()[0]
+    interp = designs["mcm_interp"]
+    with pytest.raises(CHECK_FAILED, match=r"`InterpolatedLoop\.controller\(position_m=\.\.\.\)` "
+                                           r"must be a table position in metres .* given in mm"):
+        jax.block_until_ready(jax.jit(lambda y: interp.controller(y).mcm.peak.omega)(300.0))
+    np.testing.assert_array_equal(jax.jit(lambda y: interp.controller(y).mcm.peak.omega)(0.3),
+                                  interp.controller(0.3).mcm.peak.omega)
+    for period in (np.float32(1e-4), jnp.float64(1.25e-4), np.float64(2e-4)):
+        servo = fdjax.Servo(period=period)
+        assert type(servo.period) is float and servo.period == float(period)
 
 
 def test_a_position_in_mm_under_jit_says_so():

@@ -245,6 +245,20 @@ def test_fit_network_refuses_bad_steps_and_networks():
 
 
 # ------------------------------------------------------------------------ stability_margins
+def test_an_open_loop_that_vanishes_has_no_gain_margin_to_lose():
+    """L ≡ 0 (a law that closes no loop) had a NaN gain margin: the phase of 0/0 counted as a
+    crossing.  Now GM = ∞, as python-control gives; zeros inside a loop are no crossing
+    either, and the crossing the loop does have is still found."""
+    f = np.geomspace(1.0, 1000.0, 200)
+    m = fdjax.stability_margins(f, np.zeros(200))
+    assert float(m.gain_margin) == np.inf and float(m.phase_margin_deg) == np.inf
+    assert float(m.modulus_margin) == 1.0
+    L = 0.5 * np.exp(1j * np.linspace(0.0, -4.0, 200))   # crosses −0.5 once
+    L[50:60] = 0.0
+    np.testing.assert_allclose(float(fdjax.stability_margins(f, L).gain_margin), 2.0,
+                               rtol=1e-12)
+
+
 @pytest.mark.parametrize("freq, exc, message", [
     ([[1.0, 2.0], [3.0, 4.0]], ValueError,
      r"must be a 1-D grid of at least one frequency, got shape \(2, 2\)"),

@@ -160,6 +160,17 @@ def test_save_and_load_are_bit_exact(tmp_path):
     assert bool(eqx.tree_equal(fdjax.load_schedule(path), back))
     assert sorted(f.name for f in tmp_path.iterdir()) == ["lone.eqx", "schedule.eqx",
                                                           "schedule.json"]
+    # a NaN leaf is refused before anything is written, and one in a file is named on loading
+    nan = eqx.tree_at(lambda s: s.loop.log_kv, sched, jnp.asarray(np.nan))
+    with pytest.raises(ValueError, match=r"`save_schedule\(\.\.\.\)`: the leaf \.loop\.log_kv "
+                                         r"holds NaN or ∞, cannot be saved"):
+        fdjax.save_schedule(path, nan)
+    assert bool(eqx.tree_equal(fdjax.load_schedule(path), back))
+    with open(path, "wb") as fh:
+        eqx.tree_serialise_leaves(fh, nan)
+    with pytest.raises(ValueError, match=r"`load_schedule\(path=\.\.\.\)`: the leaf "
+                                         r"\.loop\.log_kv holds NaN or ∞, in .*schedule\.eqx"):
+        fdjax.load_schedule(path)
 
 
 def test_filter_table_is_the_schedule_in_drive_units():

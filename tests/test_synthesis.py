@@ -252,6 +252,14 @@ def test_certify_is_loop_margins_and_stability_at_each_position():
     bad = fdjax.certify(ref, drive, y, freq_hz=f)
     assert not bad.ok and not bool(bad.stable[-1])
     assert "NOT certified" in bad.message and "unstable at" in bad.message
+    # the message's span and the unstable stretch are the positions' range, in any order
+    backwards = jax.tree_util.tree_map(lambda a: a[::-1], bad)
+    for c in (bad, backwards):
+        span = f"({y.min() * 1e3:.0f}–{y.max() * 1e3:.0f} mm)"
+        assert span in c.message, c.message
+    unstable = np.sort(bad.positions_m[~bad.stable]) * 1e3
+    assert (f"unstable at {unstable.size} positions, from {unstable[0]:.0f} mm to "
+            f"{unstable[-1]:.0f} mm") in backwards.message
     assert bad.worst("modulus_margin")[0] == 0.7
     # the message's least margins are those of the stable positions (an unstable loop's
     # margins mean nothing)
@@ -264,6 +272,19 @@ def test_certify_is_loop_margins_and_stability_at_each_position():
     with pytest.raises(TypeError, match=r"`certify\(positions_m=\.\.\.\)` must be a number or an "
                                         r"array of numbers, got \['a'\]"):
         fdjax.certify(ref, drive, ["a"])
+    # a grid on which a crossing can hide: a few points (the PID tuned at 115 mm was
+    # certified at 0.4 and 0.7 m on 3 of them), or a filter sharper than its steps
+    with pytest.raises(ValueError, match=r"`certify\(freq_hz=\.\.\.\)` must have neighbouring "
+                                         r"frequencies within 5 % of each other .* got "
+                                         r"8\.73e\+03 % between 44\.1588 and 3900 Hz"):
+        fdjax.certify(ref, drive, y, freq_hz=np.geomspace(0.5, 3900.0, 3))
+    sharp = eqx.tree_at(lambda c: c.mcm.peak.log_xi, ref, jnp.full_like(ref.mcm.peak.log_xi,
+                                                                           np.log(1e-4)))
+    with pytest.raises(ValueError, match=r"`certify\(freq_hz=\.\.\.\)` must resolve the "
+                                         r"controller's peak filter at 174 Hz \(relative "
+                                         r"half-width 0\.0001\), got a step of 0\.3\d+ % there: "
+                                         r"give a grid with points closer than 0\.0174 Hz"):
+        fdjax.certify(sharp, drive, y)
     # a requirement that no margin can meet (NaN failed every position without a word)
     for kw, msg in (({"gain_margin_db": np.nan}, r"gain_margin_db=\.\.\.\)` must be finite"),
                     ({"modulus_margin": 2.0}, r"modulus_margin=\.\.\.\)` must be in \(0, 1\]"),

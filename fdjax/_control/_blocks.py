@@ -134,8 +134,15 @@ class PID(AbstractBlock):
             raise ValueError(f"`PID(wd=...)` must be positive (the derivative filter's corner, "
                              f"rad/s), got {float(self.wd):.6g}")
 
+    @property
+    def _corner(self):
+        """ω_d, checked positive also where it is traced (a law built inside ``jit`` from a
+        controller's leaves, where the constructor's check cannot run)."""
+        return eqx.error_if(self.wd, ~(self.wd > 0), "`PID(wd=...)` must be positive (the "
+                            "derivative filter's corner, rad/s)")
+
     def continuous(self) -> LTI:
-        kd, wd = self.kd, self.wd
+        kd, wd = self.kd, self._corner
         return _siso(
             jnp.diag(jnp.stack([jnp.zeros(()), -wd])),
             jnp.ones((2, 1)),
@@ -145,7 +152,7 @@ class PID(AbstractBlock):
 
     def transfer(self, s):
         s = _c(s)
-        return _c(self.kp) + _c(self.ki) / s + _c(self.kd) * s / (1.0 + s / _c(self.wd))
+        return _c(self.kp) + _c(self.ki) / s + _c(self.kd) * s / (1.0 + s / _c(self._corner))
 
 
 class FilterBlock(AbstractBlock):

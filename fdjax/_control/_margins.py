@@ -86,7 +86,9 @@ def _grid_candidates(u, L):
     # Phase crossover: arg(−L) = a0 + t dphi crosses 0 (the negative real axis).
     a0 = jnp.angle(-L0)
     a1 = a0 + dphi
-    pc = (a0 <= 0) != (a1 <= 0)
+    # a zero of L on either side has no phase: no crossing there (L ≡ 0 has no gain margin
+    # to lose, GM = ∞)
+    pc = ((a0 <= 0) != (a1 <= 0)) & (jnp.abs(L0) > 0) & (jnp.abs(L1) > 0)
     t = jnp.where(pc, a0 / jnp.where(pc, a0 - a1, 1.0), 0.5)
     lm_pc = lm0 + t * (lm1 - lm0)
     sign = jnp.where(a0 <= 0, -1.0, 1.0)

@@ -64,7 +64,7 @@ class Servo(eqx.Module):
             objective keeps the current command below (:class:`fdjax.Objective`); default 40.
     """
 
-    period: float = eqx.field(static=True, default=REFERENCE_PERIOD_S)
+    period: float = eqx.field(static=True, default=REFERENCE_PERIOD_S, converter=_static_float)
     delay_samples: int = eqx.field(static=True, default=REFERENCE_DELAY_SAMPLES)
     k_motor: Float[Array, ""] = _checks.positive_field("Servo(k_motor=...)",
                                                        default=REFERENCE_K_MOTOR)

@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 
 CHUNK = 16  # samples per block of the lifted recursion
+_HOLD = 1e30  # a run's state beyond it has diverged (physical states are ≲ 1e3)
 
 
 def growth_rate(Phi, h, squarings: int = 48):
@@ -83,10 +84,16 @@ def lifted_outputs(A, B, C, D, W, K: int = CHUNK):
     G = jnp.einsum("kij,jm->ikm", powers[::-1], B).reshape(A.shape[0], K * m)
     U = Wp.reshape(nb, K * m) @ G.T
 
-    def body(s, u):
-        return AK @ s + u, s
+    def body(carry, u):
+        s, alive = carry
+        new = AK @ s + u
+        # a diverging state is held at its last value below _HOLD, never carried to overflow:
+        # the reverse pass then multiplies the zero cotangents of the samples after the
+        # failure by finite states, not 0 · ∞ = NaN
+        alive = alive & jnp.all(jnp.abs(new) < _HOLD)
+        return (jnp.where(alive, new, s), alive), (s, alive)
 
-    S = jax.lax.scan(body, jnp.zeros(A.shape[0]), U)[1]  # state at each block's start
+    _, (S, alive) = jax.lax.scan(body, (jnp.zeros(A.shape[0]), jnp.ones((), bool)), U)
     obs = jnp.einsum("pi,kin->kpn", C, powers)  # (K, p, n): C A^j
     markov = jnp.einsum("kpn,nm->kpm", obs, B)  # C A^k B
     p = C.shape[0]
@@ -96,7 +103,8 @@ def lifted_outputs(A, B, C, D, W, K: int = CHUNK):
     blocks = jnp.where((i == j)[:, :, None, None], D, blocks)
     T = blocks.transpose(0, 2, 1, 3).reshape(K * p, K * m)
     Y = jnp.einsum("jon,cn->cjo", obs, S) + (Wp.reshape(nb, K * m) @ T.T).reshape(nb, K, p)
-    finite = jnp.repeat(jnp.all(jnp.isfinite(S), axis=1), K)[:n]
+    # a block is good when its start state was reached without a hold
+    finite = jnp.repeat(jnp.concatenate([jnp.ones(1, bool), alive[:-1]]), K)[:n]
     return Y.reshape(nb * K, p)[:n], finite
 
 

@@ -96,18 +96,19 @@ class Certificate(eqx.Module):
         """One paragraph: passed or failed, where, and the least margins with their positions."""
         gm, pm, mm = self.requirements
         n = self.positions_m.size
-        span = f"{self.positions_m[0] * 1e3:.0f}–{self.positions_m[-1] * 1e3:.0f} mm"
+        y = np.asarray(self.positions_m)  # in the order given: the span is their range
+        span = f"{y.min() * 1e3:.0f}–{y.max() * 1e3:.0f} mm"
         head = (f"certified at {n} positions ({span})" if self.ok else
                 f"NOT certified: {int(np.sum(~self.passed))} of {n} positions ({span}) fail")
         parts = [head]
         if not np.all(self.stable):
-            bad = self.positions_m[~self.stable]
-            parts.append(f"unstable at {bad.size} positions, first {bad[0] * 1e3:.0f} mm, last "
+            bad = np.sort(y[~self.stable])
+            parts.append(f"unstable at {bad.size} positions, from {bad[0] * 1e3:.0f} mm to "
                          f"{bad[-1] * 1e3:.0f} mm")
         if self.low_gain is not None and not np.all(self.low_gain > 1):
-            low = self.positions_m[~(self.low_gain > 1)]
+            low = np.sort(y[~(self.low_gain > 1)])
             parts.append(f"the loop gain at the grid's lowest frequency is not above 1 at "
-                         f"{low.size} positions, first {low[0] * 1e3:.0f} mm (a gain crossover "
+                         f"{low.size} positions, lowest {low[0] * 1e3:.0f} mm (a gain crossover "
                          "below the grid: give freq_hz starting lower)")
         if not np.any(self.stable):
             return "; ".join(parts)
@@ -182,6 +183,45 @@ def default_grid(servo: Servo) -> np.ndarray:
     return np.geomspace(5.0, 0.995 * 0.5 / float(servo.period), 2000)
 
 
+MAX_GRID_STEP = 0.05
+"""The largest relative step between neighbouring frequencies of a margins' grid: a floor that
+refuses grids of a few points, not a guarantee (a lightly damped mode, ζ ≈ 0.004 in the
+reference drive, needs steps below its half-width; the default grid's are 0.34 %)."""
+
+
+def check_grid_resolves(fixed: AbstractController, freq_hz: np.ndarray, where: str,
+                        remedy: str = "give a grid with points closer than {} Hz around it"
+                        ) -> None:
+    """Refuse a frequency grid on which a crossing could hide between two points: a step
+    between neighbours above :data:`MAX_GRID_STEP`, or one wider than a filter's own relative
+    half-width (ξ of a peak filter, ζ_d of a notch) where that filter acts, at any of the
+    stacked controllers ``fixed`` (a sharp filter between two grid points is invisible)."""
+    f = np.asarray(freq_hz, float)
+    step = f[1:] / f[:-1] - 1.0
+    k = int(np.argmax(step))
+    if step[k] > MAX_GRID_STEP:
+        raise ValueError(f"`{where}` must have neighbouring frequencies within "
+                         f"{100 * MAX_GRID_STEP:g} % of each other (a crossing between two points "
+                         f"is not seen), got {100 * step[k]:.3g} % between {f[k]:.6g} and "
+                         f"{f[k + 1]:.6g} Hz")
+    mcm = getattr(fixed, "mcm", None)
+    for kind, bank, width in (("peak", getattr(mcm, "peak", None), "xi"),
+                              ("notch", getattr(mcm, "notch", None), "zeta_d")):
+        if bank is None:
+            continue
+        p = bank.params()
+        fc = np.ravel(np.asarray(p["omega"])) / (2 * np.pi)
+        w = np.ravel(np.broadcast_to(np.asarray(p[width]), np.shape(p["omega"])))
+        j = np.clip(np.searchsorted(f, fc), 1, f.size - 1)
+        bad = (fc > f[0]) & (fc < f[-1]) & (step[j - 1] > w)
+        if np.any(bad):
+            i = int(np.argmax(bad))
+            raise ValueError(f"`{where}` must resolve the controller's {kind} filter at "
+                             f"{fc[i]:.6g} Hz (relative half-width {w[i]:.3g}), got a step of "
+                             f"{100 * step[j[i] - 1]:.3g} % there: "
+                             + remedy.format(f"{w[i] * fc[i]:.3g}"))
+
+
 def certificate(y, checks, gain_margin_db=6.0, phase_margin_deg=30.0,
                 modulus_margin=0.5) -> Certificate:
     """A :class:`Certificate` from the arrays of :func:`point_checks`."""
@@ -214,7 +254,10 @@ def certify(
         drive: the drive.
         positions_m: the grid (m), inside the travel; default every 1 mm.
         servo: the servo hardware.
-        freq_hz: the margins' frequency grid, below Nyquist (default :func:`default_grid`).
+        freq_hz: the margins' frequency grid, below Nyquist (default :func:`default_grid`),
+            fine enough that no crossing hides between two points: neighbours within
+            :data:`MAX_GRID_STEP` of each other, and steps narrower than each filter's
+            relative half-width where it acts (:func:`check_grid_resolves`).
         twin: how the drive becomes its twin (default: every mode in the twin's band, counted
             over the travel).
         gain_margin_db, phase_margin_deg, modulus_margin: the requirements.
@@ -242,7 +285,8 @@ def certify(
     f = default_grid(servo) if freq_hz is None else grid_below_nyquist(
         freq_hz, servo, f"{fn}(freq_hz=...)")
     twin = (TwinOptions() if twin is None else twin).resolve(drive, fn)
+    fixed = controller.fixed_at(y)
+    check_grid_resolves(fixed, f, f"{fn}(freq_hz=...)")
     release()
-    checks = point_checks(controller.fixed_at(y), drive, y, servo=servo, freq_hz=f,
-                          twin=twin)
+    checks = point_checks(fixed, drive, y, servo=servo, freq_hz=f, twin=twin)
     return certificate(y, checks, gain_margin_db, phase_margin_deg, modulus_margin)

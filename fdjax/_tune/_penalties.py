@@ -62,8 +62,14 @@ def soft_min(d: Float[ArrayLike, "*batch freq"], beta: float) -> Float[Array, "*
 
 
 def _soft_min(d, beta):
+    # Far from −1 (β min d > 1e4, where the penalties are zero to underflow) about the row's
+    # minimum m: m − (1/β) log Σ e^{−β(d − m)}, so that no exponent is large.  Unshifted there,
+    # a loop with |L| ~ 1e27 (gains e^30 above a design's) gave −∞ and a NaN gradient under
+    # XLA:CPU's jit; elsewhere the shift is 0 and the arithmetic is the plain formula's.
     d = jnp.asarray(d)
-    return -jax.nn.logsumexp(-beta * d, axis=-1) / beta
+    m = jax.lax.stop_gradient(jnp.min(d, axis=-1, keepdims=True))
+    shift = jnp.where(beta * m > 1e4, m, 0.0)
+    return shift[..., 0] - jax.nn.logsumexp(-beta * (d - shift), axis=-1) / beta
 
 
 def modulus_distance(L: Complex[ArrayLike, "*batch freq"]) -> Float[Array, "*batch freq"]:

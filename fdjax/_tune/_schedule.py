@@ -298,6 +298,12 @@ class InterpolatedLoop(_ScheduledDoubleLoop):
                 raise ValueError(f"`{where}` must be a table position in metres (the designs "
                                  f"lie at {lo:.6g} … {hi:.6g} m), got {bad:.6g}; "
                                  f"{bad:.6g} mm is {bad / 1000:.6g} m")
+        elif not _checks.is_concrete(y):  # traced: the same sentence, without the value
+            lo, hi = self.positions_m[0], self.positions_m[-1]
+            mm = ((y < lo) | (y > hi)) & (y / 1000 >= lo) & (y / 1000 <= hi)
+            y = eqx.error_if(y, jnp.any(mm), f"`{where}` must be a table position in metres "
+                             "(the value lies between the designs once divided by 1000: it "
+                             "was given in mm)")
         return y
 
     def check_position(self, position_m: Float[ArrayLike, ""] | None, where: str):
@@ -463,7 +469,9 @@ def write_pair(leaves_path: str, tree, json_path: str, meta: dict, fn: str) -> N
     """``tree``'s leaves to ``leaves_path`` and ``meta`` to ``json_path``, each written whole
     or not at all (a temporary file beside it, then renamed): a failure leaves the files
     that were there before.  Metadata that JSON cannot hold is a ``ValueError`` naming
-    ``fn(metadata=...)``, raised before anything is written."""
+    ``fn(metadata=...)``, and a tree with a non-finite leaf one naming ``fn`` and the leaf, both
+    raised before anything is written."""
+    _check_finite_leaves(tree, f"{fn}(...)", "cannot be saved")
     try:
         text = json.dumps(meta, indent=2, ensure_ascii=False)
     except (TypeError, ValueError) as err:
@@ -499,17 +507,27 @@ def read_json(path: str, where: str, kind: str) -> dict:
     return meta
 
 
+def _check_finite_leaves(tree, where: str, consequence: str) -> None:
+    """A ``ValueError`` naming the first leaf of ``tree`` (by its path) that holds NaN or ∞."""
+    for key, leaf in jax.tree_util.tree_leaves_with_path(eqx.filter(tree, eqx.is_array)):
+        if not np.all(np.isfinite(np.asarray(leaf))):
+            raise ValueError(f"`{where}`: the leaf {jax.tree_util.keystr(key)} holds NaN or ∞, "
+                             f"{consequence}")
+
+
 def read_leaves(path: str, like, where: str, kind: str):
     """``like``'s leaves read from ``path`` (``eqx.tree_deserialise_leaves``); a file that does
     not hold them (truncated, corrupt, or the leaves of something else) is a ``ValueError``
     naming ``where`` and the file."""
     try:
         with open(path, "rb") as f:  # a file object: equinox adds no suffix to it
-            return eqx.tree_deserialise_leaves(f, like)
+            tree = eqx.tree_deserialise_leaves(f, like)
     except Exception as err:  # numpy's and equinox's errors of a file that is not the tree
         raise ValueError(f"`{where}`: {path!r} does not hold the leaves of {kind} that its JSON "
                          f"describes (truncated, corrupt, or written for something else): "
                          f"{type(err).__name__}: {err}") from err
+    _check_finite_leaves(tree, where, f"in {path!r} (not {kind} a loop can run)")
+    return tree
 
 
 def load_schedule(path: str | os.PathLike) -> ScheduledLoop:

@@ -54,7 +54,7 @@ from .._drive._reference import reference_drive
 from .._drive._twin import TwinOptions
 from .._memory import release
 from .._trajectory import Trajectory, reciprocating
-from ._certify import certificate, default_grid, point_checks
+from ._certify import certificate, check_grid_resolves, default_grid, point_checks
 from ._end_to_end import train_schedule
 from ._local import Descent, LocalTuning, RobustTuning, tune_local, tune_robust, tune_shared_gains
 from ._objective import Objective
@@ -457,6 +457,9 @@ def evaluate(
     groups: dict = {}
     for name, c in controllers.items():
         fixed = c.fixed_at(y)
+        check_grid_resolves(fixed, f, f"evaluate(controllers[{name!r}]=...)",
+                            "a filter this sharp needs fdjax.certify with a grid of points "
+                            "closer than {} Hz around it")
         groups.setdefault(_program_key(fixed), []).append((name, fixed))
     out = {}
     for members in groups.values():
