@@ -16,17 +16,25 @@ BOUNDS = fdjax.MCMBounds.for_servo(fdjax.Servo())
 
 
 # ------------------------------------------------------------------------------ local tuning
+def _problem():
+    """The file's problem from the reference controller: (drive, start, parameterisation, 1 mm
+    stroke, objective on 64 frequencies with 4 kept modes); its tuners share the objective's
+    compiled programs."""
+    drive = fdjax.reference_drive()
+    start = fdjax.reference_controller(drive)
+    par = fdjax.DoubleLoopParameterisation(BOUNDS, start)
+    ref = fdjax.reciprocating(stroke=1e-3, v_max=0.05, a_max=2.0, j_max=400.0, cycles=1)
+    obj = fdjax.Objective(ref, np.geomspace(5.0, 3900.0, 64),
+                          twin=fdjax.TwinOptions(kept_modes=4))
+    return drive, start, par, ref, obj
+
+
 def test_local_tuning_improves_every_position():
     """Two positions in one vmapped Adam run from the reference controller: the objective
     falls at both (measured 108 → 2.3 and 516 → 8.3 in 20 steps of a 1 mm stroke), and the
     best designs are stable (eigenvalues).  The file's tuners share one objective (64
     frequencies, 4 kept modes), so that they share its compiled programs."""
-    drive = fdjax.reference_drive()
-    start = fdjax.reference_controller(drive)
-    par = fdjax.DoubleLoopParameterisation(fdjax.MCMBounds.for_servo(fdjax.Servo()), start)
-    ref = fdjax.reciprocating(stroke=1e-3, v_max=0.05, a_max=2.0, j_max=400.0, cycles=1)
-    obj = fdjax.Objective(ref, np.geomspace(5.0, 3900.0, 64),
-                          twin=fdjax.TwinOptions(kept_modes=4))
+    drive, start, par, ref, obj = _problem()
     pos = np.array([0.115, 0.3])
     r = fdjax.tune_local(par, obj, drive, pos, start, steps=20, chunk=10)
     print("J", np.asarray(r.history)[0], "->", np.asarray(r.terms.total))
@@ -61,12 +69,7 @@ def test_local_tuning_refuses_a_non_finite_step_at_its_position_only():
     parameters stay where they were (the history flat from the third step, θ finite); the
     other position runs on bit for bit as in a run where no step is refused (same shapes,
     same optimiser: nothing compiles for the second run)."""
-    drive = fdjax.reference_drive()
-    start = fdjax.reference_controller(drive)
-    par = fdjax.DoubleLoopParameterisation(BOUNDS, start)
-    ref = fdjax.reciprocating(stroke=1e-3, v_max=0.05, a_max=2.0, j_max=400.0, cycles=1)
-    obj = fdjax.Objective(ref, np.geomspace(5.0, 3900.0, 64),
-                          twin=fdjax.TwinOptions(kept_modes=4))
+    drive, start, par, ref, obj = _problem()
     theta0 = np.asarray(par.from_controller(start))
 
     def init(p):   # (steps taken, whether this position's steps turn non-finite)
@@ -100,12 +103,7 @@ def test_local_tuning_by_lbfgs_keeps_the_positions_apart():
     second compiles nothing (counted by JAX's compilation events)."""
     import optax
 
-    drive = fdjax.reference_drive()
-    start = fdjax.reference_controller(drive)
-    par = fdjax.DoubleLoopParameterisation(fdjax.MCMBounds.for_servo(fdjax.Servo()), start)
-    ref = fdjax.reciprocating(stroke=1e-3, v_max=0.05, a_max=2.0, j_max=400.0, cycles=1)
-    obj = fdjax.Objective(ref, np.geomspace(5.0, 3900.0, 64),
-                          twin=fdjax.TwinOptions(kept_modes=4))
+    drive, start, par, ref, obj = _problem()
     opt = optax.lbfgs()  # one object: its compiled steps are reused
     runs = []
     for y in (0.115, 0.2):
@@ -217,12 +215,7 @@ def test_simplex_is_scipys_adaptive_nelder_mead():
 def test_tune_simplex_improves_every_position_and_names_its_arguments():
     """Two positions in one vmapped simplex from the reference controller (120 evaluations):
     J falls at both and ``terms`` are those of ``best_theta``."""
-    drive = fdjax.reference_drive()
-    start = fdjax.reference_controller(drive)
-    par = fdjax.DoubleLoopParameterisation(BOUNDS, start)
-    ref = fdjax.reciprocating(stroke=1e-3, v_max=0.05, a_max=2.0, j_max=400.0, cycles=1)
-    obj = fdjax.Objective(ref, np.geomspace(5.0, 3900.0, 64),
-                          twin=fdjax.TwinOptions(kept_modes=4))
+    drive, start, par, ref, obj = _problem()
     pos = np.array([0.115, 0.3])
     r = fdjax.tune_simplex(par, obj, drive, pos, start, evaluations=120, chunk=60)
     h = np.asarray(r.history)
