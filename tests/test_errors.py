@@ -748,13 +748,15 @@ def test_a_shared_discretisation_serves_its_own_design_only():
             fdjax.state_space(drive, 0.6, twin=opts))
     with pytest.raises(ValueError, match=traced + r".*gradient through it would be zero"):
         eqx.filter_grad(lambda c: fdjax.simulate(c, twin, motion, shared).rms_error())(ref)
-    # built inside the traced function it follows the design: the gradient is the plain one's
+    # built inside the traced function it follows the design: its gradient against central
+    # differences of the plain run (measured 1.4e-9 relative at h = 1e-4)
     g_shared = eqx.filter_grad(lambda c: fdjax.simulate(
         c, twin, motion, fdjax.SampledData().sharing(c, twin, fdjax.Servo())).rms_error())(ref)
-    g_plain = eqx.filter_grad(lambda c: fdjax.simulate(c, twin, motion).rms_error())(ref)
-    # the same arithmetic in another order: measured 1.7e-12 relative
-    np.testing.assert_allclose(float(g_shared.log_kv), float(g_plain.log_kv), rtol=1e-11)
-    assert float(g_plain.log_kv) != 0.0
+    rms = lambda d: float(fdjax.simulate(  # noqa: E731
+        eqx.tree_at(lambda c: c.log_kv, ref, ref.log_kv + d), twin, motion).rms_error())
+    fd = (rms(1e-4) - rms(-1e-4)) / 2e-4
+    np.testing.assert_allclose(float(g_shared.log_kv), fd, rtol=1e-8)
+    assert fd != 0.0
 
 
 def test_a_dead_channel_is_refused_under_vmap_too():

@@ -370,18 +370,17 @@ def test_objective_is_finite_penalising_and_differentiable():
     bad = J(hot, 0.3)
     assert not bool(bad.stable) and float(bad.growth_rate) > 0
     assert np.isfinite(float(bad.total)) and float(bad.total) > 100 * float(good.total)
-    grad = jax.jit(jax.grad(lambda th, o: terms_of(o, th, 0.3).total))
-    assert np.all(np.isfinite(np.asarray(grad(hot, obj))))
-    # gains as far as the parameterisation lets them go (e^±30 about the reference), with the
-    # sharp penalties: finite gradients (they were NaN: a diverging run's state overflowed,
-    # 0·∞ in the reverse pass; open loops of |L| ~ 1e27 gave −∞ in the smooth minimum)
-    sharp = dataclasses.replace(obj, margin_width=0.01, margin_sharpness=1000.0)
+    grad = jax.jit(jax.grad(lambda th: J(th, 0.3).total))
+    assert np.all(np.isfinite(np.asarray(grad(hot))))
+    # gains as far as the parameterisation lets them go (e^±30 about the reference): finite
+    # gradients (all four were NaN: a diverging run's state overflowed, 0·∞ in the reverse
+    # pass; and the third's open loops, |L| ~ 1e27, gave −∞ in the smooth minimum under jit)
     for shift in ([0.0, 9.2, 0.0], [30.0, 0.0, 30.0], [30.0, 30.0, 30.0], [-30.0, 30.0, -30.0]):
         far = theta0.at[:3].add(jnp.asarray(shift))
-        assert np.all(np.isfinite(np.asarray(grad(far, sharp)))), shift
+        assert np.all(np.isfinite(np.asarray(grad(far)))), shift
         assert np.isfinite(float(J(far, 0.3).total)), shift
     # the gradient of a stable design against central differences (step 1e-5 in θ, order one)
-    g = np.asarray(grad(theta0, obj))
+    g = np.asarray(grad(theta0))
     h = 1e-5
     for i in (0, 1, 2, 4, 5, 8, 10):
         fd = (float(J(theta0.at[i].add(h), 0.3).total)
@@ -390,6 +389,7 @@ def test_objective_is_finite_penalising_and_differentiable():
         np.testing.assert_allclose(g[i], fd, rtol=5e-7, atol=1e-8 * np.max(np.abs(g)))
     # the margin term is margin_penalty of the three open loops, with the objective's width
     # and sharpness (here the sharp penalties of tuning_objective: w = 0.01, β = 10/w)
+    sharp = dataclasses.replace(obj, margin_width=0.01, margin_sharpness=1000.0)
     assert fdjax.tuning_objective(margin_width=0.01).margin_sharpness == 1000.0
     with compilations() as names:  # widths and weights are traced: nothing compiles
         terms = terms_of(sharp, theta0, 0.3)
