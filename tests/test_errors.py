@@ -564,6 +564,30 @@ def test_a_schedule_names_the_callers_position():
         drive._check_travel([0.700001], "certify", "positions_m")
 
 
+def test_a_filter_above_nyquist_is_named_by_the_function_called():
+    """A notch at 4.5 kHz on an 8 kHz servo: the discretisation raised inside the compiled
+    program ("MCM.discretize(dt=...)", without the values); each entry point now names its
+    controller argument, the filter and the Nyquist frequency, before any work."""
+    drive = fdjax.reference_drive()
+    c = fdjax.reference_controller(drive)
+    bad = eqx.tree_at(lambda x: x.mcm, c, fdjax.MCM(c.mcm.peak, fdjax.NotchFilter(
+        2 * np.pi * 4500.0, 0.01, 0.3)))
+    f = np.geomspace(5.0, 3900.0, 50)
+    msg = (r"`{}\(controller=\.\.\.\)` has a filter at 4500 Hz, not below the Nyquist frequency "
+           r"4000 Hz of the servo that samples it \(period 0\.000125 s\)")
+    for fn, call in (("loop_margins", lambda: fdjax.loop_margins(bad, drive, f, position_m=0.3)),
+                     ("check_stability", lambda: fdjax.check_stability(bad, drive,
+                                                                       position_m=0.3)),
+                     ("simulate", lambda: fdjax.simulate(bad, drive, fdjax.reciprocating(),
+                                                         position_m=0.3))):
+        with pytest.raises(ValueError, match=msg.format(fn)):
+            call()
+    # a faster servo (Nyquist 5 kHz) samples it: the check runs, with a finite growth rate
+    fast = fdjax.Servo(period=1e-4)
+    assert np.isfinite(float(fdjax.check_stability(bad, drive, position_m=0.3,
+                                                   servo=fast).growth_rate))
+
+
 def test_controllers_checked_where_their_values_are_traced():
     """Checks a constructor makes eagerly, made again where the values are traced: a PID's
     derivative corner inside a user's law (margins came out for an unstable filter), an

@@ -116,6 +116,25 @@ class AbstractLoopModel(eqx.Module):
         return type(self).__name__
 
 
+def _check_filters_sampled(controller, servo, fn: str) -> None:
+    """The MCM filters of ``controller`` (where it has one and its frequencies are concrete)
+    below the Nyquist frequency of ``servo``: a ``ValueError`` naming ``fn(controller=...)``
+    and the values, where the discretisation would fail inside the compiled program."""
+    mcm = getattr(controller, "mcm", None)
+    banks = [b for b in (getattr(mcm, "peak", None), getattr(mcm, "notch", None))
+             if b is not None]
+    omegas = [b.omega for b in banks]
+    if not omegas or not all(is_concrete(w) for w in omegas):
+        return
+    top = max(float(jnp.max(w)) for w in omegas) / (2 * math.pi)
+    nyquist = 0.5 / float(servo.period)
+    if not top < nyquist:
+        raise ValueError(f"`{fn}(controller=...)` has a filter at {top:.6g} Hz, not below the "
+                         f"Nyquist frequency {nyquist:.6g} Hz of the servo that samples it "
+                         f"(period {float(servo.period):.6g} s): lower the filter, or give a "
+                         "faster servo")
+
+
 class SampledData(AbstractLoopModel):
     r"""The sampled-data loop as the servo runs it (module docstring), at the servo's period
     with its delay of d whole samples (:class:`fdjax.Servo`); outputs at every period.
@@ -149,13 +168,17 @@ class SampledData(AbstractLoopModel):
         return SampledParts.of(law, plant, servo.period, self.filter_method)
 
     def check_use(self, controller, plant, servo, where: str) -> None:
-        """A shared discretisation (:meth:`sharing`) serves the one design and twin it was
+        """A controller whose MCM (concrete) has a filter at or above the servo's Nyquist
+        frequency is refused, naming the caller's controller argument (the discretisation
+        would raise inside the compiled program, without the values).  A shared
+        discretisation (:meth:`sharing`) serves the one design and twin it was
         built from: another plant than one twin is refused, and, where the arguments are
         concrete (an eager call), another controller, twin or servo is found by building the
         discretisation again and comparing.  One built from concrete values and used with
         traced arguments (inside ``jit``/``vmap``/``grad``) is refused: it cannot follow them
         (another position or design would run the shared one's, and the gradient through it
         is zero)."""
+        _check_filters_sampled(controller, servo, where.split("(")[0])
         if self.shared is None:
             return
         if plant is None or plant.A.ndim != 2:
