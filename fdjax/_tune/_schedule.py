@@ -289,18 +289,15 @@ class InterpolatedLoop(_ScheduledDoubleLoop):
         any finite value is one; but a value whose thousandth lies between the design
         positions (and which itself does not) was given in millimetres, and is refused."""
         y = _checks.finite(_checks.real_array(position_m, where), where)
-        if _checks.is_concrete(y) and _checks.is_concrete(self.positions_m):
-            v, ys = np.asarray(y), np.asarray(self.positions_m)
-            lo, hi = float(ys[0]), float(ys[-1])
-            mm = ((v < lo) | (v > hi)) & (v / 1000 >= lo) & (v / 1000 <= hi)
-            if np.any(mm):
-                bad = float(v[mm][0]) if v.ndim else float(v)
+        lo, hi = self.positions_m[0], self.positions_m[-1]
+        mm = ((y < lo) | (y > hi)) & (y / 1000 >= lo) & (y / 1000 <= hi)
+        if _checks.is_concrete(mm):  # eagerly, with the value
+            if np.any(np.asarray(mm)):
+                bad = float(np.asarray(y)[np.asarray(mm)][0]) if np.ndim(y) else float(y)
                 raise ValueError(f"`{where}` must be a table position in metres (the designs "
-                                 f"lie at {lo:.6g} … {hi:.6g} m), got {bad:.6g}; "
+                                 f"lie at {float(lo):.6g} … {float(hi):.6g} m), got {bad:.6g}; "
                                  f"{bad:.6g} mm is {bad / 1000:.6g} m")
-        elif not _checks.is_concrete(y):  # traced: the same sentence, without the value
-            lo, hi = self.positions_m[0], self.positions_m[-1]
-            mm = ((y < lo) | (y > hi)) & (y / 1000 >= lo) & (y / 1000 <= hi)
+        else:  # traced: the same sentence, without the value
             y = eqx.error_if(y, jnp.any(mm), f"`{where}` must be a table position in metres "
                              "(the value lies between the designs once divided by 1000: it "
                              "was given in mm)")
