@@ -69,6 +69,36 @@ def check(
 LONGEST_TRAVEL_M = 20.0
 """No ball-screw axis is longer: a table position or travel beyond it (m) was given in mm."""
 
+LARGEST_SCREW_DIAMETER_M = 1.0
+"""No ball screw is thicker (the largest catalogue screws are about 0.2 m): a screw's or a
+rod's diameter or bore beyond it (m) was given in mm."""
+
+MATERIALS = {
+    # (lowest, highest, unit, (the unit mistaken for it, its size in SI units))
+    "modulus": (1e8, 1e13, "Pa", ("N/mm² (MPa)", 1e6)),
+    "density": (100.0, 3e4, "kg/m³", ("g/cm³", 1e3)),
+}
+"""Plausible elastic moduli (polymers ~1e9 Pa to carbides ~7e11 Pa) and densities of what a
+feed drive's shafts are made of, and the unit a value outside them was most likely given in."""
+
+
+def material(value, kind: str, where: str):
+    """A concrete modulus (``kind="modulus"``, Pa) or density (``"density"``, kg/m³) inside the
+    plausible range of :data:`MATERIALS`, else a ValueError that names the likely unit
+    (2.06e5 N/mm² is 2.06e11 Pa).  Traced values are returned as they are."""
+    if not is_concrete(value):
+        return value
+    lo, hi, unit, (other, scale) = MATERIALS[kind]
+    try:
+        return check(value, lambda v: (v >= lo) & (v <= hi), where,
+                     f"between {lo:g} and {hi:g} {unit}")
+    except ValueError as err:
+        v = float(np.ravel(np.asarray(value, np.float64))[0])
+        if lo <= v * scale <= hi:
+            raise ValueError(f"{err}; in {unit}: {v:.6g} {other} is {v * scale:.6g} "
+                             f"{unit}") from None
+        raise
+
 
 def inside(value, lo: float, hi: float, where: str, what: str = "the travel"):
     """Table positions (m) inside ``what`` = [lo, hi], checked by :func:`check`.  A concrete
@@ -377,3 +407,39 @@ def finite_tree(tree, where: str):
         return tree
     ok = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in leaves]))
     return eqx.error_if(tree, jnp.logical_not(ok), message)
+
+
+def constructor_checks(tree, fn: str):
+    """Run again, on every Module in ``tree`` whose leaves are concrete, the checks its
+    constructor ran (each field's converter and ``__check_init__``): ``eqx.tree_at`` replaces
+    leaves without them, so a stiffness set negative after construction would otherwise reach
+    the model.  Their ValueError names the field (``NutJoint(stiffness=...)``) and ``fn``, the
+    function the value was given to.  Modules with traced leaves are left to the checks that
+    flow with the values.  Returns ``tree``."""
+    import dataclasses
+
+    def visit(node):
+        if isinstance(node, list | tuple):
+            for item in node:
+                visit(item)
+            return
+        if not isinstance(node, eqx.Module):
+            return
+        fields = [(f, getattr(node, f.name)) for f in dataclasses.fields(node)]
+        concrete = all(is_concrete(x) for x in jax.tree_util.tree_leaves(node))
+        try:
+            if concrete:
+                for f, value in fields:
+                    convert = f.metadata.get("converter")
+                    if convert is not None and value is not None:
+                        convert(value)
+                check = getattr(type(node), "__check_init__", None)
+                if check is not None:
+                    check(node)
+        except ValueError as e:
+            raise ValueError(f"{e} (in the model given to `{fn}`)") from None
+        for _, value in fields:
+            visit(value)
+
+    visit(tree)
+    return tree

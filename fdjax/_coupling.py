@@ -90,8 +90,10 @@ def couple(
     Be = [[Bc[k, i] for i in range(B.shape[1])] for k in range(m)]
     if _checks.is_concrete(B):  # exact zeros of a concrete B are structural
         Bn = np.asarray(B)
-        # each row a constraint, none repeating another: B B^T must be invertible
-        if np.linalg.matrix_rank(Bn) < m:
+        # each rigid row a constraint, none repeating another (B Y Bᵀ must be invertible); with
+        # compliant joints repeated rows are joints in parallel, the bracket's Y_j keeps it
+        # invertible (a singular one shows up as inf/NaN below)
+        if joint is None and np.linalg.matrix_rank(Bn) < m:
             raise ValueError(
                 f"`couple(interface=...)` must have independent rows (each a compatibility "
                 f"constraint between DOFs), got rank {np.linalg.matrix_rank(Bn)} for {m} rows: "

@@ -92,6 +92,23 @@ def test_an_interface_with_a_zero_or_repeated_row_is_named():
     assert fdjax.couple(Y, np.array([[1.0, -1.0, 0.0]])).shape == (1, 3, 3)
 
 
+def test_compliant_joints_in_parallel_are_one_joint_of_their_summed_stiffness():
+    """With joint receptances a repeated row of B is a joint in parallel, not a repeated
+    constraint: two springs k1, k2 between the same DOFs couple as one spring k1 + k2 (the
+    rank check is for rigid joints only; it refused this).  Measured 0 relative difference
+    (the same numbers to the last digit), asserted to 1e-12."""
+    Y = np.diag([1e-6, 2e-6, 3e-6]).astype(complex)[None]
+    k1, k2 = 2e6, 3e6
+    B = np.array([[1.0, -1.0, 0.0], [1.0, -1.0, 0.0]])
+    two = np.asarray(fdjax.couple(Y, B, np.diag([1 / k1, 1 / k2]).astype(complex)[None]))
+    one = np.asarray(fdjax.couple(Y, B[:1], np.array([[[1 / (k1 + k2)]]], complex)))
+    np.testing.assert_allclose(two, one, rtol=1e-12)
+    # against the LM-FBS formula in NumPy
+    J = np.diag([1 / k1, 1 / k2]).astype(complex)
+    ref = Y[0] - Y[0] @ B.T @ np.linalg.solve(B @ Y[0] @ B.T + J, B @ Y[0])
+    np.testing.assert_allclose(two[0], ref, rtol=1e-12)
+
+
 def test_inputs_that_are_not_numbers_or_do_not_broadcast_are_named():
     """Raised by the function the user called, with the parameter, instead of JAX's errors."""
     from fdjax._coupling import couple, joint_receptance

@@ -245,6 +245,87 @@ def test_heights_and_rod_lengths_are_in_metres(make, match):
         make()
 
 
+@pytest.mark.parametrize(
+    "make, match",
+    [
+        (lambda: fdjax.Rod.axial(diameter=57.5, length=0.85),
+         r"`Rod\.axial\(diameter=\.\.\.\)` must be at most 1 m \(no ball screw is thicker\), "
+         r"got 57\.5; lengths are in metres: 57\.5 mm is 0\.0575 m"),
+        (lambda: fdjax.Screw(length=0.85, diameter=0.0575, lead=0.01, youngs_modulus=2.06e5),
+         r"`Screw\(youngs_modulus=\.\.\.\)` must be between 1e\+08 and 1e\+13 Pa, got 206000; "
+         r"in Pa: 206000 N/mm² \(MPa\) is 2\.06e\+11 Pa"),
+        (lambda: fdjax.Screw(length=0.85, diameter=0.0575, lead=0.01, density=7.85),
+         r"`Screw\(density=\.\.\.\)` must be between 100 and 30000 kg/m³, got 7\.85; in "
+         r"kg/m³: 7\.85 g/cm³ is 7850 kg/m³"),
+        (lambda: fdjax.Rod.torsion(diameter=0.03, length=0.85, shear_modulus=7.93e4),
+         r"`Rod\.torsion\(shear_modulus=\.\.\.\)` must be between 1e\+08 and 1e\+13 Pa, got "
+         r"79300; in Pa: 79300 N/mm² \(MPa\) is 7\.93e\+10 Pa"),
+        (lambda: fdjax.Rod.axial(diameter=0.03, length=0.85, density=1e6),
+         r"`Rod\.axial\(density=\.\.\.\)` must be between 100 and 30000 kg/m³, got 1e\+06$"),
+    ],
+)
+def test_rod_diameters_and_materials_in_si_units(make, match):
+    """A rod 57.5 (mm) thick was accepted (EA 5.3e14 N, where the screw refuses the same
+    diameter); a modulus in N/mm² or a density in g/cm³ gave a shaft 1e6 or 1e3 times too
+    soft or too light.  Each is refused with the value in SI units where that fits."""
+    with pytest.raises(ValueError, match="^" + match):
+        make()
+    # the limits themselves are materials
+    fdjax.Screw(length=0.85, diameter=0.0575, lead=0.01, youngs_modulus=1e8, density=3e4)
+
+
+def test_a_drive_edited_after_construction_is_checked_where_it_is_used():
+    """``eqx.tree_at`` skips the constructor's checks: a negative nut stiffness gave finite
+    receptances and a twin with a divergent mode reported as a rigid-body one (natural
+    frequencies [0, 0, 47.4, ...]).  The functions the drive is given to run those checks
+    again (eagerly: a traced parameter is left to the checks on what is computed, so a NaN
+    twin under jit is refused there)."""
+    drive = fdjax.reference_drive()
+    bad = eqx.tree_at(lambda d: d.nut.stiffness, drive, jnp.asarray(-1e9))
+    for fn, call in (("BallScrewDrive.frf", lambda: bad.frf(0.3, [100.0])),
+                     ("state_space", lambda: fdjax.state_space(bad, 0.3)),
+                     ("drive_modes", lambda: fdjax.drive_modes(bad, 0.3, n_modes=3))):
+        with pytest.raises(ValueError, match=r"^`NutJoint\(stiffness=\.\.\.\)` must be finite "
+                                             r"and positive, got -1e\+09 \(in the model given "
+                                             rf"to `{fn}`\)$"):
+            call()
+    light = eqx.tree_at(lambda d: d.carriage.mass, drive, jnp.asarray(-1000.0))
+    with pytest.raises(ValueError, match=r"`Carriage\(mass=\.\.\.\)` must be finite and "
+                                         r"positive, got -1000"):
+        fdjax.fe_matrices(light, 0.3)
+    # under jit, a NaN parameter's twin (its Cholesky factor NaN) is refused, not returned
+    twin = fdjax.TwinOptions(kept_modes=4)
+
+    def edited(k):
+        return eqx.tree_at(lambda d: d.nut.stiffness, drive, k)
+
+    for fn, run in (("state_space", lambda k: fdjax.state_space(edited(k), 0.3, twin=twin).A),
+                    ("fe_matrices", lambda k: fdjax.fe_matrices(edited(k), 0.3).stiffness)):
+        with pytest.raises(Exception, match=rf"`{fn}` produced a non-finite result"):
+            jax.jit(run)(jnp.nan)
+    with pytest.raises(Exception, match=r"`drive_modes\(drive=\.\.\.\)` gives a non-finite "
+                                        r"model"):
+        jax.jit(lambda k: fdjax.drive_modes(edited(k), 0.3, n_modes=3).frequency_hz)(jnp.nan)
+
+
+def test_components_of_the_wrong_kind_are_named():
+    """Swapped or missing components failed later as Python errors ("not enough values to
+    unpack", "'NoneType' object has no attribute 'length'"); a support given as a number as
+    "'float' object has no attribute '_dynamic_stiffness'"."""
+    d = fdjax.reference_drive()
+    with pytest.raises(TypeError, match=r"^`BallScrewDrive\(rotary=\.\.\.\)` must be an "
+                                        r"fdjax\.Rotary, got Axial$"):
+        fdjax.BallScrewDrive(d.screw, d.axial, d.axial, d.carriage, d.nut, d.nut_offset)
+    with pytest.raises(TypeError, match=r"`BallScrewDrive\(screw=\.\.\.\)` .* got NoneType"):
+        fdjax.BallScrewDrive(None, d.rotary, d.axial, d.carriage, d.nut, d.nut_offset)
+    rod = fdjax.Rod.axial(diameter=0.03, length=0.85)
+    with pytest.raises(TypeError, match=r"^`rod_receptance\(left=\.\.\.\)` must be an "
+                                        r"fdjax\.Support or None \(free\), got float$"):
+        fdjax.rod_receptance(rod, [10.0], [0.5], left=1e8)
+    with pytest.raises(TypeError, match=r"`Rod\.frf\(right=\.\.\.\)`"):
+        rod.frf([10.0], [0.5], right="fixed")
+
+
 def test_height_limits_and_traced_heights():
     """The limits themselves are carriages; a traced height is not refused (its plausibility
     is checked where it is given) and compiles once."""

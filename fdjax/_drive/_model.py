@@ -104,6 +104,9 @@ class BallScrewDrive(eqx.Module):
                                               converter=_travel)
 
     def __check_init__(self):
+        for name, cls in (("screw", Screw), ("rotary", Rotary), ("axial", Axial),
+                          ("carriage", Carriage), ("nut", NutJoint)):
+            _checks.instance(getattr(self, name), cls, f"BallScrewDrive({name}=...)")
         lo, hi = self.travel_m  # a checked pair (`travel_pair`, the field's converter)
         if _checks.is_concrete(self.nut_offset) and _checks.is_concrete(self.screw.length):
             l0, L = float(self.nut_offset), float(self.screw.length)
@@ -165,6 +168,8 @@ class BallScrewDrive(eqx.Module):
         the user called, e.g. ``"BallScrewDrive.receptance"`` or ``"simulate"``, ``param`` the
         name of its argument."""
         where = f"{fn}({param}=...)"
+        # a drive edited after construction (eqx.tree_at) has skipped its constructor's checks
+        _checks.constructor_checks(self, fn)
         pos = _checks.real_array(position_m, where)
         if pos.size == 0:
             raise ValueError(f"`{where}` must hold at least one table position, got shape "

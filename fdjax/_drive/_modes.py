@@ -64,10 +64,14 @@ def _channel(name, names, fn, arg):
     return names.index(name)
 
 
-def _modes_from_fe(fe, out: int, inp: int, n_keep: int) -> DriveModes:
+def _modes_from_fe(fe, out: int, inp: int, n_keep: int, fn: str = "drive_modes") -> DriveModes:
     N = fe.mass.shape[0]
     Minv = jnp.linalg.inv(fe.mass)
     A = jnp.block([[jnp.zeros((N, N)), jnp.eye(N)], [-Minv @ fe.stiffness, -Minv @ fe.damping]])
+    # a NaN parameter (traced, so not refused at the entry) is not "too many modes" below
+    A = eqx.error_if(A, jnp.logical_not(jnp.all(jnp.isfinite(A))),
+                     f"`{fn}(drive=...)` gives a non-finite model at this position; check the "
+                     f"drive's parameters for NaN/inf")
     B = jnp.concatenate([jnp.zeros((N,)), Minv @ fe.inputs[:, inp]])
     C = jnp.concatenate([fe.outputs[out], jnp.zeros((N,))])
     # Residues need left eigenvectors: rows of V⁻¹.  They are invariant to the scaling of
@@ -80,9 +84,9 @@ def _modes_from_fe(fe, out: int, inp: int, n_keep: int) -> DriveModes:
     # fewer oscillatory poles than asked for (overdamped modes): the sort below would pick
     # real or lower-half-plane poles as modes
     lam = eqx.error_if(lam, jnp.sum(oscillatory) < n_keep,
-                       "`drive_modes(n_modes=...)` asks for more modes than the drive has "
-                       "oscillatory poles at this position (some modes are overdamped): ask for "
-                       "fewer")
+                       f"`{fn}(n_modes=...)` asks for more modes than the drive has "
+                       f"oscillatory poles at this position (some modes are overdamped): ask for "
+                       f"fewer")
     keep = jnp.argsort(jnp.where(oscillatory, jnp.abs(lam), jnp.inf))[:n_keep]
     lam, V, W = lam[keep], V[:, keep], W[keep, :]
     Cc, Bc = C.astype(jnp.complex128), B.astype(jnp.complex128)
@@ -157,9 +161,10 @@ def drive_modes(
     return _modes_batch_jit(drive, pos, out, inp, n_keep, n_el, twin.nut_correction)
 
 
-def _modes_at(drive, pos, out, inp, n_modes, n_elements, nut_correction=True):
+def _modes_at(drive, pos, out, inp, n_modes, n_elements, nut_correction=True,
+              fn="drive_modes"):
     return _modes_from_fe(_assemble(drive, pos, n_elements, bool(nut_correction)), out, inp,
-                          n_modes)
+                          n_modes, fn)
 
 
 def _modes_batch(drive, pos, out, inp, n_modes, n_elements, nut_correction=True):

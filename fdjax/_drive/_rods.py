@@ -105,14 +105,18 @@ class Rod(eqx.Module):
         name the user passed it by."""
         where = f"Rod.{kind}({{}}=...)"
         name, value = modulus
-        d = _checks.positive(_scalar(diameter), where.format("diameter"))
+        d = _checks.at_most(_checks.positive(_scalar(diameter), where.format("diameter")),
+                            _checks.LARGEST_SCREW_DIAMETER_M, where.format("diameter"),
+                            "no ball screw is thicker")
         section = jnp.pi * d**power / (4 if power == 2 else 32)
         length = _checks.at_most(_checks.positive(_scalar(length), where.format("length")),
                                  _checks.LONGEST_TRAVEL_M, where.format("length"),
                                  "no ball screw is longer")
-        return cls(length,
-                   _checks.positive(_scalar(value), where.format(name)) * section,
-                   _checks.positive(_scalar(density), where.format("density")) * section,
+        modulus = _checks.material(_checks.positive(_scalar(value), where.format(name)),
+                                   "modulus", where.format(name))
+        density = _checks.material(_checks.positive(_scalar(density), where.format("density")),
+                                   "density", where.format("density"))
+        return cls(length, modulus * section, density * section,
                    _checks.nonnegative(_scalar(loss_factor), where.format("loss_factor")),
                    _checks.nonnegative(_scalar(retardation), where.format("retardation")))
 
@@ -166,6 +170,7 @@ class Rod(eqx.Module):
     ) -> Complex[Array, "freq p p"]:
         """Receptance matrix between points along the rod (see :func:`rod_receptance`)."""
         freq_hz = _checks.frequency_grid(freq_hz, "Rod.frf(freq_hz=...)")
+        _check_supports(left, right, "Rod.frf")
         points = _check_points(self, points_m, "Rod.frf")
         out = _rod_receptance(self, 2 * jnp.pi * freq_hz, points, left, right)
         return _checks.finite_output(out, "Rod.frf(...)")
@@ -294,6 +299,8 @@ def rod_receptance(
     ``[0, L]`` and, when they are traced (inside ``jit``/``vmap``/``grad``, where they cannot be
     sorted and merged in Python), be strictly increasing and strictly inside ``(0, L)``.
     """
+    _checks.instance(rod, Rod, "rod_receptance(rod=...)")
+    _check_supports(left, right, "rod_receptance")
     where = "rod_receptance(omega=...)"
     omega = _checks.finite(_checks.real_array(omega, where), where)
     if omega.ndim != 1:
@@ -301,6 +308,13 @@ def rod_receptance(
     points = _check_points(rod, points_m, "rod_receptance")
     out = _rod_receptance(rod, omega, points, left, right)
     return _checks.finite_output(out, "rod_receptance(...)")
+
+
+def _check_supports(left, right, fn: str) -> None:
+    """The end supports: each an :class:`Support` or None (free)."""
+    for name, s in (("left", left), ("right", right)):
+        if s is not None:
+            _checks.instance(s, Support, f"{fn}({name}=...)", "an fdjax.Support or None (free)")
 
 
 def _check_points(rod: Rod, points_m, fn: str) -> Array:

@@ -48,9 +48,7 @@ def _nut_point(shaft: Rod, l, where: str) -> Array:
     return eqx.error_if(l, ~ok, f"`{where}` must be strictly inside (0, L) m")
 
 
-LARGEST_SCREW_DIAMETER_M = 1.0
-"""No ball screw is thicker (the largest catalogue screws are about 0.2 m): a screw's diameter
-or bore beyond it (m) was given in mm."""
+LARGEST_SCREW_DIAMETER_M = _checks.LARGEST_SCREW_DIAMETER_M
 
 HIGHEST_POINT_M = 5.0
 """No point of a feed drive's carriage or table lies farther from the pitch centre (a tall
@@ -123,6 +121,9 @@ class Screw(eqx.Module):
         # lengths in metres: a concrete value beyond what any ball screw has was given in mm
         for name, limit, reason in _SCREW_SIZES:
             _checks.at_most(getattr(self, name), limit, f"Screw({name}=...)", reason)
+        for name, kind in (("youngs_modulus", "modulus"), ("shear_modulus", "modulus"),
+                           ("density", "density")):
+            _checks.material(getattr(self, name), kind, f"Screw({name}=...)")
         self._checked()
 
     def _checked(self) -> Screw:

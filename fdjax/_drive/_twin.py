@@ -549,7 +549,8 @@ def fe_matrices(
     """
     twin = _twin_options(twin, "fe_matrices")
     drive, pos = _check_inputs(drive, position_m, "fe_matrices")
-    return _assemble_jit(drive, pos, int(twin.n_elements), bool(twin.nut_correction))
+    fe = _assemble_jit(drive, pos, int(twin.n_elements), bool(twin.nut_correction))
+    return _checks.finite_tree(fe, "fe_matrices")
 
 
 def count_modes(
@@ -634,6 +635,6 @@ def state_space(
     m = twin.modes_for(drive, "state_space")
     ss = _realise_jit(drive, pos, int(twin.n_elements), m, bool(twin.residual),
                       bool(twin.nut_correction))
-    if _checks.is_concrete(ss.A):  # eager: a drive with non-physical values says so here
-        _checks.finite_tree([ss.A, ss.B, ss.C, ss.D], "state_space")
-    return ss
+    # a drive with non-physical values says so here: eagerly, or under jit by an error_if
+    A, B, C, D = _checks.finite_tree([ss.A, ss.B, ss.C, ss.D], "state_space")
+    return eqx.tree_at(lambda s: (s.A, s.B, s.C, s.D), ss, (A, B, C, D))

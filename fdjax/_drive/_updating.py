@@ -214,7 +214,7 @@ def _build(u, data: _FitData) -> BallScrewDrive:
 def _model_modes(drive, data: _FitData) -> DriveModes:
     f = data.fit
     return _modes_at(drive, data.position_m, f.out, f.inp, f.n_modes, f.n_elements,
-                     f.nut_correction)
+                     f.nut_correction, "update_model")
 
 
 def _residuals(modes: DriveModes, target: ModalData, tolerances) -> Array:
