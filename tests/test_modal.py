@@ -165,6 +165,12 @@ def test_vector_fitting_stage_alone(fits, table1):
     # measured 2.5e-4 and 6.7e-3 on this seed, a little above the refined fit's
     np.testing.assert_allclose(vf.frequency_hz, TABLE1[:, 0], rtol=5e-4)
     np.testing.assert_allclose(vf.damping_ratio, TABLE1[:, 1], rtol=0.012)
+    # the estimate is not differentiated (its poles are the start's): a derivative of it is
+    # refused, where it was silently zero in frequency (finite differences: 150 Hz per unit
+    # scale of the pole); the refined fit's is not
+    with pytest.raises(ValueError, match=r"`identify_modes\(refine=False\)` has no derivative"):
+        jax.grad(lambda c: identify_modes(FREQ, c * table1["h"], 5, refine=False)
+                 .frequency_hz[0])(1.0)
 
 
 def three_mass_state_space():
@@ -417,6 +423,28 @@ def test_track_modes_single_channel_extrapolates(n_modes):
                                rtol=1e-12)
 
 
+@pytest.mark.parametrize("n_modes", [3, 9])  # exact assignment, and the greedy path (> 7)
+def test_track_modes_keeps_each_track_through_a_missing_mode(n_modes):
+    """An order-free sweep pads a mode it did not find with NaN.  The tracks stay on their
+    modes through the gap, the gap stays in its track, and a track that starts with a gap takes
+    its mode where it appears.  (A NaN cost of 1e30 had swallowed the real costs, 1e30 + 100 ==
+    1e30: the 300 Hz mode went to the 200 Hz track.)"""
+    base = 100.0 * (1 + np.arange(n_modes))
+    truth = base[None, :] + np.arange(5)[:, None]  # 100, 200, …; +1 Hz per position
+    freq = truth.copy()
+    # the 200 Hz mode missing at position 1 (the sorted fit moves 300 Hz into its column) and
+    # the highest mode missing at position 0 (padded at the end)
+    freq[1] = np.concatenate([np.delete(truth[1], 1), [np.nan]])
+    freq[0] = np.concatenate([np.delete(truth[0], n_modes - 1), [np.nan]])
+    tracked = np.asarray(track_modes(synthetic_fits(freq, np.ones((5, n_modes, 1),
+                                                                  complex))).frequency_hz)
+    # track order is position 0's: the highest mode's track is its last column (NaN there)
+    expected = truth.copy()
+    expected[1, 1] = np.nan
+    expected[0, -1] = np.nan
+    np.testing.assert_array_equal(tracked, expected)
+
+
 # ---------------------------------------------------------------------------------------
 # Bad input.
 
@@ -436,6 +464,11 @@ def test_track_modes_single_channel_extrapolates(n_modes):
         (dict(n_modes=2.0), r"n_modes=\.\.\.\)` must be an integer .* got 2.0"),
         (dict(weights=-np.ones(3)), r"weights=\.\.\.\)` must be finite and positive, got -1"),
         (dict(rigid_body=3), r"rigid_body=\.\.\.\)` must be an integer between 0 and 2"),
+        (dict(frf=np.array([1, 0, 1], complex)), r"frf=\.\.\.\)` must not be exactly zero at "
+                                                  r"any frequency when `identify_modes\(weights="
+                                                  r"\.\.\.\)` is None .* got 0 at index \(1,\)"),
+        (dict(frf=np.ones((3, 0), complex)), r"frf=\.\.\.\)` must have at least one channel, "
+                                              r"got shape \(3, 0\)"),
     ],
 )
 def test_bad_input(kwargs, match):

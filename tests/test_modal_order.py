@@ -200,7 +200,29 @@ def test_stabilisation_diagram_and_plot(synthetic):
 
 
 def test_order_free_errors(synthetic):
+    """Also: ``refine=False`` without an order returns the diagram's estimate (it was
+    ignored, 159 refinement steps), bad ``refine``/``vf_extra_modes`` are refused (they were
+    not checked), and the sweep checks its data as a whole, with its own name and shapes (it
+    said "`identify_modes(frf=...)` must have shape (n_freq) ... got shape (400,)" for a
+    (2, 400) sweep)."""
     f, h, d = synthetic
+    est = identify_modes(f, h, refine=False)
+    assert int(est.num_steps) == 0
+    np.testing.assert_allclose(est.frequency_hz, d.mode_frequency_hz, rtol=1e-12)
+    with pytest.raises(TypeError, match=r"`identify_modes\(refine=\.\.\.\)` must be a bool"):
+        identify_modes(f, h, refine="no")
+    with pytest.raises(ValueError, match=r"`identify_modes\(vf_extra_modes=\.\.\.\)`"):
+        identify_modes(f, h, vf_extra_modes=-5)
+    sweep = np.stack([h, h])
+    with pytest.raises(ValueError, match=r"`identify_modes_batched\(frf=\.\.\.\)` must be a "
+                                         r"complex FRF"):
+        fdjax.identify_modes_batched(f, sweep.real)
+    with pytest.raises(ValueError, match=r"`identify_modes_batched\(frf=\.\.\.\)` must have "
+                                         r"shape \(n_positions, n_freq\).* got shape"):
+        fdjax.identify_modes_batched(f, sweep[:, :-1])
+    with pytest.raises(ValueError, match=r"`identify_modes_batched\(freq_hz=\.\.\.\)` must be "
+                                         r"strictly increasing"):
+        fdjax.identify_modes_batched(f[::-1], sweep)
     with pytest.raises(ValueError, match=r"`identify_modes\(n_modes=...\)` must be None"):
         identify_modes(f, h, 5, initial=d)
     with pytest.raises(ValueError, match="another frequency grid"):

@@ -73,6 +73,19 @@ def _check_inputs(where, n_batch, freq_hz, frf, n_modes, rigid_body, upper_resid
         frf = eqx.error_if(frf, jnp.any(jnp.all(flat == 0, axis=n_batch)),
                            f"`{where}(frf=...)` must not have a channel that is zero at every "
                            "frequency")
+    if frf.size == 0:
+        raise ValueError(f"`{where}(frf=...)` must have at least one channel, got shape "
+                         f"{frf.shape}")
+    if weights is None:  # the default weights 1/|H| need every sample away from zero
+        message = (f"`{where}(frf=...)` must not be exactly zero at any frequency when "
+                   f"`{where}(weights=...)` is None (the default weights are 1/|H|); give "
+                   f"weights")
+        if is_concrete(frf):
+            zero = np.argwhere(np.asarray(frf) == 0)
+            if zero.size:
+                raise ValueError(f"{message}, got 0 at index {tuple(int(i) for i in zero[0])}")
+        else:
+            frf = eqx.error_if(frf, jnp.any(frf == 0), message)
     rigid_body = static_int(rigid_body, f"{where}(rigid_body=...)", 0, 2)
     if not isinstance(upper_residual, bool):
         raise TypeError(f"`{where}(upper_residual=...)` must be a bool, got {upper_residual!r}")

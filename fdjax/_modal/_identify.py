@@ -236,10 +236,12 @@ def identify_modes(
     - ``max_modes``: without ``n_modes``, the highest order (pole pairs) of the diagram
       (default 16, fewer on short grids; it stops earlier once the fit has converged).
     - ``refine``: ``False`` returns the vector-fitting estimate (residues solved for its
-      poles) without the nonlinear refinement.
+      poles; without ``n_modes``, the stabilisation diagram's) without the nonlinear
+      refinement.  That estimate has no derivative: differentiating it raises.
     - ``vf_iterations``: number of vector-fitting pole relocations (with the spare pairs).
     - ``vf_extra_modes``: spare pole pairs of the vector-fitting stage (see the
-      ``fdjax._modal`` docstring); 0 fits exactly ``n_modes`` pairs.
+      ``fdjax._modal`` docstring); 0 fits exactly ``n_modes`` pairs.  Without ``n_modes``
+      the diagram's orders take their part, and it does not enter (it is still checked).
     - ``solver``: an ``optimistix`` least-squares solver, applied to the residual in
       Marquardt-scaled pole parameters (unit: one column norm of the start Jacobian). The
       default is Levenberg–Marquardt (``optx.AbstractGaussNewton`` with a damped Newton
@@ -280,6 +282,8 @@ def identify_modes(
         n_modes = int(initial.poles.shape[-1])
         if real_poles is None:
             real_poles = int(initial.real_poles.shape[-1])
+    refine = static_bool(refine, "identify_modes(refine=...)")
+    throw = static_bool(throw, "identify_modes(throw=...)")
     if n_modes is None or isinstance(initial, StabilisationDiagram):
         if not all(is_concrete(x) for x in (freq_hz, frf, weights) if x is not None):
             raise ValueError(
@@ -290,11 +294,10 @@ def identify_modes(
             freq_hz, frf, n_modes, rigid_body=rigid_body,
             real_poles=1 if real_poles is None else real_poles, upper_residual=upper_residual,
             weights=weights, initial=initial, max_modes=max_modes, vf_iterations=vf_iterations,
-            solver=solver, max_steps=max_steps, throw=throw,
+            vf_extra_modes=vf_extra_modes, refine=refine, solver=solver, max_steps=max_steps,
+            throw=throw,
         )
     real_poles = 0 if real_poles is None else real_poles
-    refine = static_bool(refine, "identify_modes(refine=...)")
-    throw = static_bool(throw, "identify_modes(throw=...)")
     freq_hz, frf, weights, n_modes, static = _check_inputs(
         "identify_modes", 0, freq_hz, frf, n_modes, rigid_body, upper_residual, weights,
         initial, vf_iterations, vf_extra_modes, max_steps, real_poles,
@@ -309,6 +312,8 @@ def identify_modes(
         channel_shape=tuple(frf.shape[1:]),
         real_poles=real_poles,
     )
+    if not refine:  # the estimate's poles are not differentiated: refused, not zero
+        frf, weights = _refined_only(frf), None if weights is None else _refined_only(weights)
     s, h, w, h_scale, omega_ref = _prepare(freq_hz, frf, weights)
     if initial is None:
         data = jax.lax.stop_gradient((s, h, w))
@@ -359,7 +364,7 @@ def identify_modes_batched(
 
     Without ``n_modes`` every position chooses its own order from its stabilisation
     diagram (:func:`identify_modes` with ``n_modes=None``, eagerly, one position after the
-    other; ``batch_size``, ``initial``, ``refine`` and ``vf_extra_modes`` do not enter) and
+    other; ``batch_size``, ``initial`` and ``vf_extra_modes`` do not enter) and
     the modes *inside the band* are returned, padded with NaN to the largest count over the
     positions (a mode not found at a position); :func:`track_modes` pairs them.
     """
@@ -367,8 +372,8 @@ def identify_modes_batched(
         return _identify_sweep(
             freq_hz, frf, weights, rigid_body=rigid_body,
             real_poles=1 if real_poles is None else real_poles, upper_residual=upper_residual,
-            max_modes=max_modes, vf_iterations=vf_iterations, solver=solver,
-            max_steps=max_steps, throw=throw,
+            max_modes=max_modes, vf_iterations=vf_iterations, vf_extra_modes=vf_extra_modes,
+            refine=refine, solver=solver, max_steps=max_steps, throw=throw,
         )
     real_poles = 0 if real_poles is None else real_poles
     freq_hz, frf, weights, n_modes, static = _check_inputs(
@@ -415,7 +420,8 @@ def _identify_positions(freq_hz, frf, weights, initial, n_modes, batch_size, opt
 
 
 def _identify_auto(freq_hz, frf, n_modes, *, rigid_body, real_poles, upper_residual, weights,
-                   initial, max_modes, vf_iterations, solver, max_steps, throw) -> ModalFit:
+                   initial, max_modes, vf_iterations, vf_extra_modes, refine, solver, max_steps,
+                   throw) -> ModalFit:
     """identify_modes without an order: the stabilisation diagram's selected poles, refined.
 
     The refinement is tried from the selected order's poles; should it fail (or lose a mode:
@@ -432,8 +438,8 @@ def _identify_auto(freq_hz, frf, n_modes, *, rigid_body, real_poles, upper_resid
             f"`{fn}(n_modes=...)` must be None, got {n_modes!r}"
         )
     freq_hz, frf, weights, _, static = _check_inputs(
-        fn, 0, freq_hz, frf, 1, rigid_body, upper_residual, weights, None, vf_iterations, 0,
-        max_steps, real_poles,
+        fn, 0, freq_hz, frf, 1, rigid_body, upper_residual, weights, None, vf_iterations,
+        vf_extra_modes, max_steps, real_poles,
     )
     rigid_body, upper_residual, vf_iterations, _, max_steps, real_poles = static
     if isinstance(initial, StabilisationDiagram):
@@ -466,11 +472,26 @@ def _identify_auto(freq_hz, frf, n_modes, *, rigid_body, real_poles, upper_resid
     solver = _DEFAULT_SOLVER if solver is None else solver
     s, h, w, h_scale, omega_ref = _prepare(freq_hz, frf, weights)
     p0 = (jnp.asarray(pairs / float(omega_ref)), jnp.asarray(rpoles / float(omega_ref)))
-    fit = _finish(s, h, w, h_scale, omega_ref, p0, solver, model, True, max_steps, False)
+    fit = _finish(s, h, w, h_scale, omega_ref, p0, solver, model, refine, max_steps, False)
     band = (float(freq_hz[0]), float(freq_hz[-1]))
-    if not _refined_ok(fit, diagram, band):
+    if refine and not _refined_ok(fit, diagram, band):
         fit = _finish(s, h, w, h_scale, omega_ref, p0, solver, model, False, max_steps, False)
     return _without_cancelled_poles(fit)
+
+
+@jax.custom_jvp
+def _refined_only(x):
+    """``x``; differentiating through it raises: with ``refine=False`` the vector-fitting
+    estimate's poles carry no derivative (a gradient would be silently zero in frequency and
+    damping)."""
+    return x
+
+
+@_refined_only.defjvp
+def _refined_only_jvp(primals, tangents):
+    raise ValueError("`identify_modes(refine=False)` has no derivative: the vector-fitting "
+                     "estimate's poles are not differentiated (its gradient in frequency and "
+                     "damping would be zero); differentiate the refined fit, refine=True")
 
 
 # A mode's own term below this share of the fitted response at its natural frequency (every
@@ -524,7 +545,8 @@ def _refined_ok(fit: ModalFit, diagram: StabilisationDiagram, band) -> bool:
 
 
 def _identify_sweep(freq_hz, frf, weights, *, rigid_body, real_poles, upper_residual,
-                    max_modes, vf_iterations, solver, max_steps, throw) -> ModalFit:
+                    max_modes, vf_iterations, vf_extra_modes, refine, solver, max_steps,
+                    throw) -> ModalFit:
     """identify_modes_batched without an order: each position's order chosen by its own
     stabilisation diagram (eagerly, position by position); the modes inside the band are
     returned, NaN-padded to the largest count over the positions."""
@@ -533,14 +555,19 @@ def _identify_sweep(freq_hz, frf, weights, *, rigid_body, real_poles, upper_resi
     if frf.ndim < 2:
         raise ValueError(f"`{fn}(frf=...)` must have a leading position axis, got shape "
                          f"{frf.shape}")
+    # the whole sweep checked as given, with this function's name and its shapes
+    freq_hz, frf, weights, _, _ = _check_inputs(
+        fn, 1, freq_hz, frf, 1, rigid_body, upper_residual, weights, None, vf_iterations,
+        vf_extra_modes, max_steps, real_poles)
+    refine = static_bool(refine, f"{fn}(refine=...)")
     freq_np = np.asarray(freq_hz, dtype=np.float64)
     fits = []
     for p in range(frf.shape[0]):
         w = None if weights is None else jnp.broadcast_to(jnp.asarray(weights), frf.shape)[p]
         fit = identify_modes(freq_hz, frf[p], rigid_body=rigid_body, real_poles=real_poles,
                              upper_residual=upper_residual, weights=w, max_modes=max_modes,
-                             vf_iterations=vf_iterations, solver=solver, max_steps=max_steps,
-                             throw=throw)
+                             vf_iterations=vf_iterations, refine=refine, solver=solver,
+                             max_steps=max_steps, throw=throw)
         f = np.asarray(fit.frequency_hz)
         fits.append((fit, np.flatnonzero((f >= freq_np[0]) & (f <= freq_np[-1]))))
     n = max(k.size for _, k in fits)

@@ -56,6 +56,13 @@ def _assign(cost: Array) -> Array:
     return perm
 
 
+_CAP = 1e6  # a pairing 1000 tolerances apart is as bad as any farther one
+# A pairing with a missing mode (a NaN entry) costs as much as one five tolerances off: where
+# another track can take the mode, a track takes the gap rather than a mode farther than that
+# (a track with no frequency yet, NaN from the first position, takes the mode that appears).
+_MISSING = 25.0
+
+
 @eqx.filter_jit
 def _track(freq, shapes, freq_tol, mac_tol, extrapolate: bool):
     def step(carry, x):
@@ -69,10 +76,16 @@ def _track(freq, shapes, freq_tol, mac_tol, extrapolate: bool):
         df = (f_new[None, :] - f_pred[:, None]) / (freq_tol * f_pred[:, None])
         dmac = (1.0 - _mac(psi_prev, psi_new)) / mac_tol
         cost = df**2 + dmac**2
-        # a mode missing at a position (NaN, from an order-free sweep) pairs with what is left
-        perm = _assign(jnp.where(jnp.isnan(cost), 1e30, cost))
-        f_t = f_new[perm]
-        return (f_t, f_prev, psi_new[perm], k + 1), perm
+        # A mode missing at a position (NaN, from an order-free sweep) pairs with what is left
+        # at the cost _MISSING (a cost of 1e30 had absorbed the real ones in round-off,
+        # 1e30 + 100 == 1e30, and the pairing was the first permutation's).
+        perm = _assign(jnp.where(jnp.isnan(cost), _MISSING, jnp.minimum(cost, _CAP)))
+        f_t, psi_t = f_new[perm], psi_new[perm]
+        # a track whose mode is missing here keeps its last frequencies and shape
+        gap = jnp.isnan(f_t)
+        carry = (jnp.where(gap, f_prev, f_t), jnp.where(gap, f_prev2, f_prev),
+                 jnp.where(gap[:, None], psi_prev, psi_t), k + 1)
+        return carry, perm
 
     init = (freq[0], freq[0], shapes[0], jnp.array(1))
     _, perms = jax.lax.scan(step, init, (freq[1:], shapes[1:]))
