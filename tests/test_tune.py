@@ -79,6 +79,26 @@ def test_round_trip_and_reference():
 
 
 
+def test_a_non_finite_theta_is_named_by_the_map_the_user_called():
+    """A NaN entry of θ was reported as the field of a controller the user never built
+    (`DoubleLoop(kp=...)`, `PeakFilter(K=...)`); a loop without an MCM as
+    `MCMBounds.from_mcm(mcm=...)`."""
+    ref = fdjax.reference_controller(fdjax.reference_drive())
+    par = fdjax.DoubleLoopParameterisation(BOUNDS, ref)
+    for par_, n, name in ((par, 12, "DoubleLoopParameterisation"),
+                          (fdjax.PIDParameterisation(fdjax.reference_pid(), feedforward=False), 6,
+                           "PIDParameterisation")):
+        with pytest.raises(ValueError, match=rf"^`{name}\.to_controller\(theta=\.\.\.\)` must "
+                                             r"be finite, got nan at index 3$"):
+            par_.to_controller(jnp.zeros(n).at[3].set(jnp.nan))
+    with pytest.raises(ValueError, match=r"^`MCMBounds\.to_mcm\(theta=\.\.\.\)` must be "
+                                         r"finite, got inf at index 6$"):
+        BOUNDS.to_mcm(jnp.zeros(7).at[6].set(jnp.inf))
+    with pytest.raises(TypeError, match=r"^`DoubleLoopParameterisation\.from_controller\(loop="
+                                        r"\.\.\.\)\.mcm` must be an fdjax\.MCM"):
+        par.from_controller(fdjax.DoubleLoop())
+
+
 def test_saturated_theta_reads_back_and_bad_filters_raise_under_jit():
     # σ(θ) rounds to 1 in float64 beyond θ ≈ 36.7, so to_mcm puts the filter on a bound: it
     # must read back as a finite θ that gives the same filter (not an error, not inf)
@@ -272,8 +292,16 @@ def test_gain_margin_penalty_counts_both_directions_as_the_exact_margin_does():
 
 
 def test_penalty_settings_are_checked():
-    """A zero width made the penalty vanish without a word, a zero β made it infinite."""
+    """A zero width made the penalty vanish without a word, a zero β made it infinite; a NaN
+    in L gave a NaN penalty, an infinite L NaN (inf − inf in the shift), a scalar L JAX's
+    "axis -1 is out of bounds"."""
     L = jnp.array([0.5 + 0.1j, -0.3 + 0.2j, -0.9 + 0.05j])
+    for bad, message in (([0.5 + 0.1j, np.nan], r"must be finite .* got \(nan\+0j\) at index 1"),
+                         (np.full(3, np.inf + 0j), r"must be finite"),
+                         (0.5 + 0j, r"must be the open loop on a frequency grid .* got shape "
+                                    r"\(\)")):
+        with pytest.raises(ValueError, match=r"`margin_penalty\(L=\.\.\.\)` " + message):
+            fdjax.margin_penalty(bad)
     for kw, name in (({"beta": 0.0}, "beta"), ({"width": 0.0}, "width"),
                      ({"width": np.inf}, "width"), ({"beta": -3.0}, "beta")):
         with pytest.raises(ValueError, match=rf"`margin_penalty\({name}=\.\.\.\)` must be finite "

@@ -38,8 +38,10 @@ class LocalTuning(eqx.Module):
         history: the objective J at every step and position, (steps, n);
             :func:`fdjax.tune_newton`'s has the start's J first, (steps + 1, n).
         terms: the objective's terms at ``best_theta`` (batched over the positions).
-        seconds: wall time of the steps without the first call, which compiles (s): the
-            steps after the first chunk (0.0 for a run of one chunk); :func:`fdjax.tune_newton`
+        seconds: wall time of the steps without the calls that compile (s): the steps after
+            the first chunk, less a last chunk shorter than ``chunk`` (its own program; a
+            chunk that divides the steps compiles once), 0.0 for a run of one chunk;
+            :func:`fdjax.tune_newton`
             the calls after the first of each of its programs, scaled to all steps at their
             rate.
         evaluations: evaluations of the objective with its gradient per step and position,
@@ -91,7 +93,9 @@ def tune_local(
             search (``optax.lbfgs()``) gets the value and the objective it needs.  The
             compiled steps are reused by a later call with the same optimiser object (and
             the same shapes): make it once, e.g. ``opt = optax.lbfgs()``.
-        chunk: steps per compiled call (the progress bar is drawn between calls).
+        chunk: steps per compiled call (the progress bar is drawn between calls); a last
+            call with fewer steps compiles a program of its own: a chunk that divides
+            ``steps`` compiles once.
         progress: a progress bar with the objective's mean and max after each chunk (stderr).
     """
     fn = "tune_local"
@@ -105,7 +109,7 @@ def tune_local(
     best = theta
     best_j = _settled(jnp.full(pos.size, jnp.inf))
     history, evaluations = [], []
-    t_steps = 0.0
+    t_steps, timed = 0.0, _CompiledLengths()
     done = 0
     while done < steps:
         k = min(chunk, steps - done)
@@ -113,8 +117,7 @@ def tune_local(
         theta, state, best, best_j, (hist, evals) = _run(
             parameterisation, objective, drive, y, theta, state, best, best_j, opt, k)
         jax.block_until_ready(hist)
-        if done > 0:  # the first call compiles
-            t_steps += time.perf_counter() - t0
+        t_steps += timed.seconds(k, time.perf_counter() - t0)
         history.append(np.asarray(hist))
         evaluations.append(np.asarray(evals))
         done += k
@@ -127,6 +130,21 @@ def tune_local(
         evaluations[0] += 1  # a line search's start: evaluated once before its first trial
     return LocalTuning(y, theta, best, jnp.asarray(np.concatenate(history)), terms, t_steps,
                        jnp.asarray(evaluations))
+
+
+class _CompiledLengths:
+    """The wall time of a chunked run's calls, less those that compile: a chunk's length is
+    static in its program, so the first call of each length (the first chunk, and a last one
+    shorter than ``chunk``) compiles, and its seconds are not counted."""
+
+    def __init__(self):
+        self.seen = set()
+
+    def seconds(self, length: int, dt: float) -> float:
+        if length in self.seen:
+            return dt
+        self.seen.add(length)
+        return 0.0
 
 
 @eqx.filter_jit
@@ -279,8 +297,8 @@ class RobustTuning(eqx.Module):
         history: the robust objective at every step, (steps,).
         worst: max over the positions of J at every step, (steps,).
         terms: the objective's terms at ``best_theta`` at each position.
-        seconds: wall time of the steps after the first chunk, which compiles (s; 0.0 for a
-            run of one chunk).
+        seconds: wall time of the steps after the first chunk, which compiles, less a last
+            chunk shorter than the others (its own program) (s; 0.0 for a run of one chunk).
         evaluations: evaluations of the objective with its gradient at every position at
             every step, (steps,): 1 for Adam, the line search's trials for L-BFGS.
     """
@@ -378,6 +396,7 @@ def descend(loss, params, optimiser, steps: int, *, chunk: int = 25, key=None,
         state = _settled(optimiser.init(params))
     best, best_v = params, _settled(jnp.asarray(jnp.inf))
     hist, auxs, evals, t_steps, done = [], [], [], 0.0, 0
+    timed = _CompiledLengths()
     while done < steps:
         k = min(chunk, steps - done)
         keys = None if key is None else jax.random.split(jax.random.fold_in(key, done), k)
@@ -385,8 +404,7 @@ def descend(loss, params, optimiser, steps: int, *, chunk: int = 25, key=None,
         params, state, best, best_v, (v, aux, n) = _descend_chunk(
             loss, params, state, best, best_v, optimiser, keys, k)
         jax.block_until_ready(v)
-        if done > 0:
-            t_steps += time.perf_counter() - t0
+        t_steps += timed.seconds(k, time.perf_counter() - t0)
         hist.append(np.asarray(v))
         auxs.append(np.asarray(aux))
         evals.append(np.asarray(n))

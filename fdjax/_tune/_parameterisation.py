@@ -196,6 +196,7 @@ class MCMBounds(eqx.Module):
         th = jnp.asarray(theta, jnp.float64)
         if th.shape[-1:] != (7,) or th.ndim != 1:
             raise ValueError(f"`MCMBounds.to_mcm(theta=...)` must have shape (7,), got {th.shape}")
+        _finite_theta(th, "MCMBounds.to_mcm(theta=...)")
         w_lo, w_hi = self._omega
         zeta_d = _box(th[5], *self.notch_damping)
         peak = PeakFilter(
@@ -214,7 +215,10 @@ class MCMBounds(eqx.Module):
     def from_mcm(self, mcm: MCM) -> Float[Array, " 7"]:
         """θ of an MCM with one peak and one notch filter inside the bounds (the inverse of
         :meth:`to_mcm`); a parameter outside them is a ``ValueError`` naming it."""
-        where = "MCMBounds.from_mcm(mcm=...)"
+        return self._from_mcm(mcm, "MCMBounds.from_mcm(mcm=...)")
+
+    def _from_mcm(self, mcm, where: str):
+        """:meth:`from_mcm`, its errors naming ``where`` (the argument the user gave)."""
         if not isinstance(mcm, MCM) or mcm.peak is None or mcm.notch is None:
             raise TypeError(f"`{where}` must be an fdjax.MCM with a peak and a notch filter")
         pk, nt = mcm.peak, mcm.notch
@@ -237,6 +241,16 @@ class MCMBounds(eqx.Module):
             _unbox(depth, self.notch_depth_min, 1.0, "the notch depth ζ_n/ζ_d", where,
                    inverted=True),
         ])
+
+
+def _finite_theta(th, where: str) -> None:
+    """A concrete θ finite, the first bad entry named by its index (a traced one is checked by
+    the controller's own fields, under their names)."""
+    if is_concrete(th):
+        bad = np.flatnonzero(~np.isfinite(np.asarray(th)))
+        if bad.size:
+            raise ValueError(f"`{where}` must be finite, got {float(np.asarray(th)[bad[0]])} at "
+                             f"index {int(bad[0])}")
 
 
 class AbstractParameterisation(eqx.Module):
@@ -333,6 +347,7 @@ class DoubleLoopParameterisation(AbstractParameterisation):
                 f"`DoubleLoopParameterisation.to_controller(theta=...)` must have shape (12,), "
                 f"got {th.shape}"
             )
+        _finite_theta(th, "DoubleLoopParameterisation.to_controller(theta=...)")
         kp, kv, ki, ffv, ffa = self.reference
         on = 1.0 if self.feedforward else 0.0
         return DoubleLoop(_gain(kp, th[0]), _gain(kv, th[1]), _gain(ki, th[2]),
@@ -353,7 +368,8 @@ class DoubleLoopParameterisation(AbstractParameterisation):
               else (jnp.ones(()), jnp.ones(())))
         gains = jnp.stack([loop.log_kp - math.log(kp), loop.log_kv - math.log(kv),
                            loop.log_ki - math.log(ki), *ff])
-        return jnp.concatenate([gains, self.mcm.from_mcm(loop.mcm)])
+        return jnp.concatenate([gains, self.mcm._from_mcm(
+            loop.mcm, "DoubleLoopParameterisation.from_controller(loop=...).mcm")])
 
 
 class PIDParameterisation(AbstractParameterisation):
@@ -420,6 +436,7 @@ class PIDParameterisation(AbstractParameterisation):
                 f"`PIDParameterisation.to_controller(theta=...)` must have shape (6,), got "
                 f"{th.shape}"
             )
+        _finite_theta(th, "PIDParameterisation.to_controller(theta=...)")
         kp, ki, kd, ffv, ffa = self.reference
         wd = _box(th[3], _TWO_PI * self.wd_hz[0], _TWO_PI * self.wd_hz[1])
         on = 1.0 if self.feedforward else 0.0

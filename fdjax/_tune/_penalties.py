@@ -20,6 +20,18 @@ The smooth minimum over the grid is −(1/β) log Σ_k exp(−β d_k) ≤ min_k 
 minimum by at most (log n)/β; each penalty is softplus((d_req − d̃)/w)², zero-ish when the
 requirement holds with room, growing quadratically when it fails, finite and differentiable for
 any L (the grid must resolve the loop's resonances, as for the exact margins).
+
+The modulus term's set is a disc: its distance grows with the violation, and on the tuning
+grid (400 frequencies) the smooth minimum is within about 1 % of the exact modulus margin of
+the shipped designs.  The gain and phase sets are a segment and an arc: their distances say
+how near the loop passes, not how deep it crosses, so each term saturates near
+softplus(1/4 + log(n)/(βw))² whatever the violation, and a crossing between two grid points
+of a coarse grid can go unseen (the fixed MCM tuned at 115 mm, at 0.7 m: exact gain margin
+5.79 dB, gain term 0.032 on the 400 frequencies at w = 0.01, 0.56 on 4000).  With the default
+requirements a modulus margin of 0.5 already implies GM ≥ 6.02 dB and PM ≥ 28.96°, so the
+modulus term carries the robustness; stricter gain or phase requirements are held only
+approximately by these terms.  Final designs are checked with the exact margins
+(:func:`fdjax.loop_margins`, :func:`fdjax.certify`).
 """
 
 from __future__ import annotations
@@ -138,6 +150,11 @@ def margin_penalty(
     beta, width = (_checks.positive(_checks.real_scalar(v, f"{fn}({name}=...)"),
                                     f"{fn}({name}=...)")
                    for name, v in (("beta", beta), ("width", width)))
+    L = _checks.numeric(L, f"{fn}(L=...)")
+    if L.ndim < 1 or L.shape[-1] < 1:
+        raise ValueError(f"`{fn}(L=...)` must be the open loop on a frequency grid (its last "
+                         f"axis), got shape {L.shape}")
+    L = _checks.finite(L, f"{fn}(L=...)")
     return penalty(L, modulus_margin, gain_margin_db, phase_margin_deg, beta, width)
 
 

@@ -32,7 +32,7 @@ from jaxtyping import ArrayLike, Float
 from .. import _checks, _progress
 from .._control._controllers import AbstractController
 from .._drive._model import BallScrewDrive
-from ._local import LocalTuning, _check_common, _settled, _start, _terms_at
+from ._local import LocalTuning, _check_common, _CompiledLengths, _settled, _start, _terms_at
 from ._objective import Objective
 from ._parameterisation import AbstractParameterisation
 
@@ -164,7 +164,9 @@ def tune_simplex(
         parameterisation, objective, drive, positions_m, start: as :func:`fdjax.tune_local`.
         evaluations: evaluations per position (> p + 1).
         step: the initial simplex's edge in θ (> 0).
-        chunk: evaluations per compiled call (the progress bar is drawn between calls).
+        chunk: evaluations per compiled call (the progress bar is drawn between calls); a
+            last call with fewer evaluations compiles a program of its own (and is not timed):
+            a chunk that divides ``evaluations`` compiles once.
         progress: a progress bar with the best J's mean and max after each chunk (stderr).
     """
     fn = "tune_simplex"
@@ -179,14 +181,13 @@ def tune_simplex(
     step = _checks.static_number(step, f"{fn}(step=...)", lambda v: v > 0, "a positive number")
     state = _settled(jax.vmap(lambda x: _init(x, float(step)))(theta))
     y = jnp.asarray(pos)
-    history, done, t_steps = [], 0, 0.0
+    history, done, t_steps, timed = [], 0, 0.0, _CompiledLengths()
     while done < evaluations:
         k = min(chunk, evaluations - done)
         t0 = time.perf_counter()
         state, hist = _run(parameterisation, objective, drive, y, state, k)
         jax.block_until_ready(hist)
-        if done > 0:
-            t_steps += time.perf_counter() - t0
+        t_steps += timed.seconds(k, time.perf_counter() - t0)
         history.append(np.asarray(hist).T)
         done += k
         if progress:
