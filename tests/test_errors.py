@@ -472,10 +472,12 @@ def test_a_scheduled_controller_on_measured_frfs():
 
 def test_a_twin_of_a_non_physical_drive_is_refused():
     """A negative saddle mass (set past the constructor's check) gave a twin of NaN matrices
-    without a word; the eager call now says so, as the drive's FRFs do."""
+    without a word; the eager call now names the value, by the constructor's own check."""
     drive = eqx.tree_at(lambda d: d.carriage.mass, fdjax.reference_drive(),
                         jnp.asarray(-1000.0))
-    with pytest.raises(ValueError, match=r"`state_space` produced a non-finite result"):
+    with pytest.raises(ValueError, match=r"^`Carriage\(mass=\.\.\.\)` must be finite and "
+                                         r"positive, got -1000 \(in the model given to "
+                                         r"`state_space`\)$"):
         fdjax.state_space(drive, 0.3)
 
 
@@ -501,10 +503,12 @@ def test_a_bore_as_wide_as_the_screw_is_refused_under_vmap_and_tree_at():
         with pytest.raises(eqx.EquinoxRuntimeError, match=match):
             jax.block_until_ready(eqx.filter_jit(lambda b: bored(b).frf(
                 0.3, FREQ))(jnp.asarray(b)))
-        with pytest.raises(eqx.EquinoxRuntimeError, match=match):  # the FRF's program
-            bored(jnp.asarray(b)).frf(0.3, FREQ)
-        with pytest.raises(ValueError, match=match + rf" {d:g} m, got {b:g}"):  # eager
+        # eager, with the values: by the screw's own check, and where the drive is used
+        with pytest.raises(ValueError, match=match + rf" {d:g} m, got {b:g}"):
             bored(jnp.asarray(b)).screw.torsion()
+        with pytest.raises(ValueError, match=match + rf" {d:g} m, got {b:g} \(in the model "
+                                                     r"given to `BallScrewDrive\.frf`\)"):
+            bored(jnp.asarray(b)).frf(0.3, FREQ)
     # a concrete drive's modes are counted eagerly inside a trace: no check is staged there
     assert fdjax.count_modes(bored(jnp.asarray(0.03))) >= 1
 
