@@ -38,10 +38,9 @@ class LocalTuning(eqx.Module):
         history: the objective J at every step and position, (steps, n);
             :func:`fdjax.tune_newton`'s has the start's J first, (steps + 1, n).
         terms: the objective's terms at ``best_theta`` (batched over the positions).
-        seconds: wall time of the steps without the calls that compile (s): the steps after
-            the first chunk, less a last chunk shorter than ``chunk`` (its own program; a
-            chunk that divides the steps compiles once), 0.0 for a run of one chunk;
-            :func:`fdjax.tune_newton`
+        seconds: wall time of the steps without the first call, which compiles (s): the
+            steps after the first chunk (a last, shorter chunk runs the same program, its time
+            scaled to its steps), 0.0 for a run of one chunk; :func:`fdjax.tune_newton`
             the calls after the first of each of its programs, scaled to all steps at their
             rate.
         evaluations: evaluations of the objective with its gradient per step and position,
@@ -93,9 +92,8 @@ def tune_local(
             search (``optax.lbfgs()``) gets the value and the objective it needs.  The
             compiled steps are reused by a later call with the same optimiser object (and
             the same shapes): make it once, e.g. ``opt = optax.lbfgs()``.
-        chunk: steps per compiled call (the progress bar is drawn between calls); a last
-            call with fewer steps compiles a program of its own: a chunk that divides
-            ``steps`` compiles once.
+        chunk: steps per compiled call (the progress bar is drawn between calls); every call
+            runs one program, a last call with fewer steps computes and drops the rest.
         progress: a progress bar with the objective's mean and max after each chunk (stderr).
     """
     fn = "tune_local"
@@ -111,15 +109,17 @@ def tune_local(
     history, evaluations = [], []
     t_steps, timed = 0.0, _CompiledLengths()
     done = 0
+    length = min(chunk, steps)  # every call runs this program; the last, k ≤ length steps
     while done < steps:
         k = min(chunk, steps - done)
         t0 = time.perf_counter()
         theta, state, best, best_j, (hist, evals) = _run(
-            parameterisation, objective, drive, y, theta, state, best, best_j, opt, k)
+            parameterisation, objective, drive, y, theta, state, best, best_j, opt, length,
+            jnp.asarray(k))
         jax.block_until_ready(hist)
-        t_steps += timed.seconds(k, time.perf_counter() - t0)
-        history.append(np.asarray(hist))
-        evaluations.append(np.asarray(evals))
+        t_steps += timed.seconds(k, time.perf_counter() - t0, length)
+        history.append(np.asarray(hist)[:k])
+        evaluations.append(np.asarray(evals)[:k])
         done += k
         if progress:
             h = history[-1][-1]
@@ -132,17 +132,31 @@ def tune_local(
                        jnp.asarray(evaluations))
 
 
+def masked_scan(step, carry, xs, length: int, active):
+    """``lax.scan(step, carry, xs, length=length)`` whose carry changes in the first ``active``
+    iterations only (traced: a chunked run's last, shorter chunk runs the program of the
+    others, its extra iterations computed and dropped); the outputs of all ``length``."""
+    def body(c, x):
+        i, xi = x
+        new, out = step(c, xi)
+        keep = i < active
+        return jax.tree_util.tree_map(lambda a, b: jnp.where(keep, a, b), new, c), out
+
+    return jax.lax.scan(body, carry, (jnp.arange(length), xs), length=length)
+
+
 class _CompiledLengths:
-    """The wall time of a chunked run's calls, less those that compile: a chunk's length is
-    static in its program, so the first call of each length (the first chunk, and a last one
-    shorter than ``chunk``) compiles, and its seconds are not counted."""
+    """The wall time of a chunked run's steps, less the calls that compile: the first call of
+    each program (keyed by its length; every chunk of a run shares one, ``masked_scan``) is
+    not counted, and a call that runs k of its ``length`` iterations counts k/length of its
+    time (its last chunk's extra iterations are computed and dropped)."""
 
     def __init__(self):
         self.seen = set()
 
-    def seconds(self, length: int, dt: float) -> float:
+    def seconds(self, k: int, dt: float, length: int) -> float:
         if length in self.seen:
-            return dt
+            return dt * k / length
         self.seen.add(length)
         return 0.0
 
@@ -190,7 +204,7 @@ def _settled(tree):
 
 
 @eqx.filter_jit
-def _run(par, objective, drive, y, theta, state, best, best_j, opt, steps):
+def _run(par, objective, drive, y, theta, state, best, best_j, opt, length, steps):
     def loss(th, p):
         return objective(par.to_controller(th), drive, p).total
 
@@ -228,8 +242,8 @@ def _run(par, objective, drive, y, theta, state, best, best_j, opt, steps):
             n = jnp.ones_like(j, jnp.int32)
         return (th, st, b, bj), (j, n)
 
-    (theta, state, best, best_j), hist = jax.lax.scan(
-        step, (theta, state, best, best_j), None, length=steps)
+    (theta, state, best, best_j), hist = masked_scan(
+        step, (theta, state, best, best_j), None, length, steps)
     return theta, state, best, best_j, hist
 
 
@@ -297,8 +311,8 @@ class RobustTuning(eqx.Module):
         history: the robust objective at every step, (steps,).
         worst: max over the positions of J at every step, (steps,).
         terms: the objective's terms at ``best_theta`` at each position.
-        seconds: wall time of the steps after the first chunk, which compiles, less a last
-            chunk shorter than the others (its own program) (s; 0.0 for a run of one chunk).
+        seconds: wall time of the steps after the first chunk, which compiles (s; 0.0 for a
+            run of one chunk).
         evaluations: evaluations of the objective with its gradient at every position at
             every step, (steps,): 1 for Adam, the line search's trials for L-BFGS.
     """
@@ -397,17 +411,19 @@ def descend(loss, params, optimiser, steps: int, *, chunk: int = 25, key=None,
     best, best_v = params, _settled(jnp.asarray(jnp.inf))
     hist, auxs, evals, t_steps, done = [], [], [], 0.0, 0
     timed = _CompiledLengths()
+    length = min(chunk, steps)  # every call runs this program; the last, k ≤ length steps
     while done < steps:
         k = min(chunk, steps - done)
-        keys = None if key is None else jax.random.split(jax.random.fold_in(key, done), k)
+        keys = None if key is None else jax.random.split(jax.random.fold_in(key, done),
+                                                         length)
         t0 = time.perf_counter()
         params, state, best, best_v, (v, aux, n) = _descend_chunk(
-            loss, params, state, best, best_v, optimiser, keys, k)
+            loss, params, state, best, best_v, optimiser, keys, length, jnp.asarray(k))
         jax.block_until_ready(v)
-        t_steps += timed.seconds(k, time.perf_counter() - t0)
-        hist.append(np.asarray(v))
-        auxs.append(np.asarray(aux))
-        evals.append(np.asarray(n))
+        t_steps += timed.seconds(k, time.perf_counter() - t0, length)
+        hist.append(np.asarray(v)[:k])
+        auxs.append(np.asarray(aux)[:k])
+        evals.append(np.asarray(n)[:k])
         done += k
         if progress:
             _progress.bar(progress, done, steps,
@@ -418,7 +434,7 @@ def descend(loss, params, optimiser, steps: int, *, chunk: int = 25, key=None,
 
 
 @eqx.filter_jit
-def _descend_chunk(loss, params, state, best, best_v, opt, keys, steps):
+def _descend_chunk(loss, params, state, best, best_v, opt, keys, length, steps):
     def step(carry, k):
         p, st, b, bv = carry
         f = loss if k is None else (lambda q: loss(q, k))
@@ -435,8 +451,8 @@ def _descend_chunk(loss, params, state, best, best_v, opt, keys, steps):
         n = jnp.asarray(1, jnp.int32) + (0 if trials is None else trials.astype(jnp.int32))
         return (p, st, b, bv), (v, aux, n)
 
-    (params, state, best, best_v), out = jax.lax.scan(
-        step, (params, state, best, best_v), keys, length=steps)
+    (params, state, best, best_v), out = masked_scan(
+        step, (params, state, best, best_v), keys, length, steps)
     return params, state, best, best_v, out
 
 

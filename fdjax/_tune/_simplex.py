@@ -32,7 +32,15 @@ from jaxtyping import ArrayLike, Float
 from .. import _checks, _progress
 from .._control._controllers import AbstractController
 from .._drive._model import BallScrewDrive
-from ._local import LocalTuning, _check_common, _CompiledLengths, _settled, _start, _terms_at
+from ._local import (
+    LocalTuning,
+    _check_common,
+    _CompiledLengths,
+    _settled,
+    _start,
+    _terms_at,
+    masked_scan,
+)
 from ._objective import Objective
 from ._parameterisation import AbstractParameterisation
 
@@ -130,10 +138,10 @@ def nelder_mead(fun, x0: Float[ArrayLike, " p"], evaluations: int, step: float =
 
 
 @eqx.filter_jit
-def _run(par, objective, drive, y, state, steps):
+def _run(par, objective, drive, y, state, length, steps):
     def one(st, p):
         fun = lambda th: objective(par.to_controller(th), drive, p).total  # noqa: E731
-        return jax.lax.scan(lambda s, _: _step(fun, s), st, None, length=steps)
+        return masked_scan(lambda s, _: _step(fun, s), st, None, length, steps)
 
     return jax.vmap(one)(state, y)
 
@@ -164,9 +172,9 @@ def tune_simplex(
         parameterisation, objective, drive, positions_m, start: as :func:`fdjax.tune_local`.
         evaluations: evaluations per position (> p + 1).
         step: the initial simplex's edge in θ (> 0).
-        chunk: evaluations per compiled call (the progress bar is drawn between calls); a
-            last call with fewer evaluations compiles a program of its own (and is not timed):
-            a chunk that divides ``evaluations`` compiles once.
+        chunk: evaluations per compiled call (the progress bar is drawn between calls); every
+            call runs one program, a last call with fewer evaluations computes and drops the
+            rest.
         progress: a progress bar with the best J's mean and max after each chunk (stderr).
     """
     fn = "tune_simplex"
@@ -182,13 +190,14 @@ def tune_simplex(
     state = _settled(jax.vmap(lambda x: _init(x, float(step)))(theta))
     y = jnp.asarray(pos)
     history, done, t_steps, timed = [], 0, 0.0, _CompiledLengths()
+    length = min(chunk, evaluations)  # every call runs this program; the last, k ≤ length
     while done < evaluations:
         k = min(chunk, evaluations - done)
         t0 = time.perf_counter()
-        state, hist = _run(parameterisation, objective, drive, y, state, k)
+        state, hist = _run(parameterisation, objective, drive, y, state, length, jnp.asarray(k))
         jax.block_until_ready(hist)
-        t_steps += timed.seconds(k, time.perf_counter() - t0)
-        history.append(np.asarray(hist).T)
+        t_steps += timed.seconds(k, time.perf_counter() - t0, length)
+        history.append(np.asarray(hist)[:, :k].T)
         done += k
         if progress:
             b = np.asarray(state.best_f)
