@@ -107,7 +107,7 @@ def tune_local(
     best = theta
     best_j = _settled(jnp.full(pos.size, jnp.inf))
     history, evaluations = [], []
-    t_steps, timed = 0.0, _CompiledLengths()
+    t_steps = 0.0
     done = 0
     length = min(chunk, steps)  # every call runs this program; the last, k ≤ length steps
     while done < steps:
@@ -117,7 +117,8 @@ def tune_local(
             parameterisation, objective, drive, y, theta, state, best, best_j, opt, length,
             jnp.asarray(k))
         jax.block_until_ready(hist)
-        t_steps += timed.seconds(k, time.perf_counter() - t0, length)
+        if done > 0:  # the first call compiles; a shorter last one counts for its k steps
+            t_steps += (time.perf_counter() - t0) * k / length
         history.append(np.asarray(hist)[:k])
         evaluations.append(np.asarray(evals)[:k])
         done += k
@@ -143,22 +144,6 @@ def masked_scan(step, carry, xs, length: int, active):
         return jax.tree_util.tree_map(lambda a, b: jnp.where(keep, a, b), new, c), out
 
     return jax.lax.scan(body, carry, (jnp.arange(length), xs), length=length)
-
-
-class _CompiledLengths:
-    """The wall time of a chunked run's steps, less the calls that compile: the first call of
-    each program (keyed by its length; every chunk of a run shares one, ``masked_scan``) is
-    not counted, and a call that runs k of its ``length`` iterations counts k/length of its
-    time (its last chunk's extra iterations are computed and dropped)."""
-
-    def __init__(self):
-        self.seen = set()
-
-    def seconds(self, k: int, dt: float, length: int) -> float:
-        if length in self.seen:
-            return dt * k / length
-        self.seen.add(length)
-        return 0.0
 
 
 @eqx.filter_jit
@@ -410,7 +395,6 @@ def descend(loss, params, optimiser, steps: int, *, chunk: int = 25, key=None,
         state = _settled(optimiser.init(params))
     best, best_v = params, _settled(jnp.asarray(jnp.inf))
     hist, auxs, evals, t_steps, done = [], [], [], 0.0, 0
-    timed = _CompiledLengths()
     length = min(chunk, steps)  # every call runs this program; the last, k ≤ length steps
     while done < steps:
         k = min(chunk, steps - done)
@@ -420,14 +404,15 @@ def descend(loss, params, optimiser, steps: int, *, chunk: int = 25, key=None,
         params, state, best, best_v, (v, aux, n) = _descend_chunk(
             loss, params, state, best, best_v, optimiser, keys, length, jnp.asarray(k))
         jax.block_until_ready(v)
-        t_steps += timed.seconds(k, time.perf_counter() - t0, length)
+        if done > 0:  # the first call compiles; a shorter last one counts for its k steps
+            t_steps += (time.perf_counter() - t0) * k / length
         hist.append(np.asarray(v)[:k])
         auxs.append(np.asarray(aux)[:k])
         evals.append(np.asarray(n)[:k])
         done += k
         if progress:
             _progress.bar(progress, done, steps,
-                          f"objective {float(v[-1]):.4g} (best {float(best_v):.4g})")
+                          f"objective {float(hist[-1][-1]):.4g} (best {float(best_v):.4g})")
     return Descent(params, best, jnp.asarray(np.concatenate(hist)),
                    jnp.asarray(np.concatenate(auxs)), t_steps,
                    jnp.asarray(np.concatenate(evals)))

@@ -35,7 +35,6 @@ from .._drive._model import BallScrewDrive
 from ._local import (
     LocalTuning,
     _check_common,
-    _CompiledLengths,
     _settled,
     _start,
     _terms_at,
@@ -189,14 +188,15 @@ def tune_simplex(
     step = _checks.static_number(step, f"{fn}(step=...)", lambda v: v > 0, "a positive number")
     state = _settled(jax.vmap(lambda x: _init(x, float(step)))(theta))
     y = jnp.asarray(pos)
-    history, done, t_steps, timed = [], 0, 0.0, _CompiledLengths()
+    history, done, t_steps = [], 0, 0.0
     length = min(chunk, evaluations)  # every call runs this program; the last, k ≤ length
     while done < evaluations:
         k = min(chunk, evaluations - done)
         t0 = time.perf_counter()
         state, hist = _run(parameterisation, objective, drive, y, state, length, jnp.asarray(k))
         jax.block_until_ready(hist)
-        t_steps += timed.seconds(k, time.perf_counter() - t0, length)
+        if done > 0:  # the first call compiles; a shorter last one counts for its k steps
+            t_steps += (time.perf_counter() - t0) * k / length
         history.append(np.asarray(hist)[:, :k].T)
         done += k
         if progress:
