@@ -277,7 +277,7 @@ def test_descend_compiles_once_for_every_chunk():
         assert counts[0] == counts[1] > 0, counts  # weak-typed starts: [1, 2] and [3, 6]
 
 
-def test_a_shorter_last_chunk_runs_the_same_program():
+def test_a_shorter_last_chunk_runs_the_same_program(capsys):
     """A last chunk shorter than the others was a program of its own: a second compilation
     (about 50 s for the tuning objective), counted in ``seconds`` (1.85 s of 1.87 s for 12
     steps in chunks of 5).  It now runs the others' program, its extra steps computed and
@@ -298,8 +298,11 @@ def test_a_shorter_last_chunk_runs_the_same_program():
     fdjax.descend(Slow(), jnp.zeros(2), optax.adam(0.1), 10, chunk=5)  # a new optimiser
     whole = len(traces)  # the traces of one program (two chunks of 5)
     traces.clear()
-    res = fdjax.descend(Slow(), jnp.zeros(2), optax.adam(0.1), 12, chunk=5)
+    res = fdjax.descend(Slow(), jnp.zeros(2), optax.adam(0.1), 12, chunk=5, progress="d")
     assert len(traces) == whole, (whole, len(traces))  # 5 + 5 + 2: one program too
+    # the progress bar's last objective is the 12th step's, not a dropped one's
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert f"objective {float(res.history[-1]):.4g} " in last, last
     assert np.asarray(res.history).shape == (12,) and np.asarray(res.evaluations).shape == (12,)
     assert 0.0 < res.seconds < 0.25, res.seconds  # the later chunks' steps alone
     one = fdjax.descend(Slow(), jnp.zeros(2), optax.adam(0.1), 12, chunk=12)
