@@ -100,10 +100,11 @@ def material(value, kind: str, where: str):
         raise
 
 
-def inside(value, lo: float, hi: float, where: str, what: str = "the travel"):
-    """Table positions (m) inside ``what`` = [lo, hi], checked by :func:`check`.  A concrete
-    value that misses the range but lies inside it once divided by 1000 was given in
-    millimetres: the message says so, with the value in metres."""
+def inside(value, lo: float, hi: float, where: str, what: str = "the travel",
+           noun: str = "table positions"):
+    """Table positions (m; or other lengths, ``noun``) inside ``what`` = [lo, hi], checked by
+    :func:`check`.  A concrete value that misses the range but lies inside it once divided by
+    1000 was given in millimetres: the message says so, with the value in metres."""
     _numbers(value, where)  # a string or another object that is not numbers: a TypeError
     # the ends with a round-off's slack: np.arange(0.1, 0.7 + 1e-3, 1e-3) ends at
     # 0.7000000000000005, which is the end of the travel
@@ -118,14 +119,14 @@ def inside(value, lo: float, hi: float, where: str, what: str = "the travel"):
         return eqx.branched_error_if(
             value, bad, in_mm.astype(jnp.int32),
             [f"`{where}` must be {expected}",
-             f"`{where}` must be {expected}; table positions are in metres (the value lies "
+             f"`{where}` must be {expected}; {noun} are in metres (the value lies "
              f"inside once divided by 1000: it was given in mm)"])
     try:
         return check(value, ok, where, expected)
     except ValueError as err:  # raised eagerly: the value is concrete and real here
         mm = _in_mm(value, ok)
         if mm is not None:
-            raise ValueError(f"{err}; table positions are in metres: {mm:.6g} mm is "
+            raise ValueError(f"{err}; {noun} are in metres: {mm:.6g} mm is "
                              f"{mm / 1000:.6g} m") from None
         raise
 

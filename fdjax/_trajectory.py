@@ -299,7 +299,7 @@ def _move(value, where: str) -> float:
     so with its value in metres (:func:`fdjax._checks.inside`)."""
     d = _number(value, where, finite)
     return inside(d, -LONGEST_TRAVEL_M, LONGEST_TRAVEL_M, where,
-                  "the longest travel of a ball-screw axis")
+                  "the longest travel of a ball-screw axis", "move lengths")
 
 
 def _double_s_durations(h: float, v: float, a: float, j: float) -> tuple[float, float, float]:

@@ -58,8 +58,9 @@ def test_demo_writes_figures(tmp_path):
     assert "RMS scale error" in text
     assert "least margins at 13 positions (gain margins in dB)" in text
     # the reference controller's margins in dB (sampled speed loop: GM 4.25 = 12.6 dB), and
-    # where it is unstable: from 480 mm sampled, 520 mm continuous (eigenvalues,
-    # fdjax.check_stability), so from the 13-position grid's 500 and 550 mm
+    # where it is unstable: from 470–475 mm sampled, 515–520 mm continuous with a Padé delay
+    # of order 8 (eigenvalues, fdjax.check_stability), so from the 13-position grid's 500 and
+    # 550 mm
     assert "  sampled, as the servo runs it: speed loop GM ≥ 12.6 dB, PM ≥ 53.5°" in text
     assert "; unstable from 500 mm (eigenvalues)\n" in text
     assert "  continuous, exact delay: speed loop GM ≥ " in text
@@ -190,7 +191,8 @@ def test_modes_writes_table(tmp_path, capsys):
         (["tnue"], "unknown command 'tnue'; did you mean 'tune'?"),
         (["tune", "--steps", "10"], "unrecognized arguments: --steps 10 (options of 'tune': "
                                     "--out, --quick)"),
-        (["demo", "--quick"], "unrecognized arguments: --quick (options of 'demo': --out)"),
+        (["demo", "--quick"], "unrecognized arguments: --quick; demo is already 'fdjax "
+                              "reproduce --quick' (options of 'demo': --out)"),
         # before the command: a typo of --version, a command's option, anything else
         (["--versoin"], "unknown option '--versoin' before the command; did you mean "
                         "'--version'?"),
@@ -212,6 +214,8 @@ def test_argument_errors(argv, message, capsys):
     assert exc.value.code == 2
     err = capsys.readouterr().err
     assert message in err, err
+    if "unrecognized arguments" in message:  # the command's usage, not fdjax's
+        assert err.startswith(f"usage: fdjax {argv[0]} "), err
 
 
 # ---------------------------------------------------------------------- --out before any work

@@ -662,10 +662,10 @@ def test_a_move_in_mm_is_refused():
     without the hint."""
     msg = r" must be inside the longest travel of a ball-screw axis \[-20, 20\] m, got "
     with pytest.raises(ValueError, match=r"^`jerk_limited\(distance=\.\.\.\)`" + msg +
-                       r"300; table positions are in metres: 300 mm is 0\.3 m$"):
+                       r"300; move lengths are in metres: 300 mm is 0\.3 m$"):
         jerk_limited(300.0, 0.1, 2.0, 200.0)
     with pytest.raises(ValueError, match=r"^`reciprocating\(stroke=\.\.\.\)`" + msg +
-                       r"-25; table positions are in metres: -25 mm is -0\.025 m$"):
+                       r"-25; move lengths are in metres: -25 mm is -0\.025 m$"):
         reciprocating(stroke=-25.0)
     with pytest.raises(ValueError, match=r"^`jerk_limited\(distance=\.\.\.\)`" + msg + r"30000$"):
         jerk_limited(3e4, 0.1, 2.0, 200.0)
