@@ -88,18 +88,6 @@ def couple(
     B = _checks.finite(B, "couple(interface=...)")
     Bc = B.astype(jnp.complex128)
     Be = [[Bc[k, i] for i in range(B.shape[1])] for k in range(m)]
-    if _checks.is_concrete(B):  # exact zeros of a concrete B are structural
-        Bn = np.asarray(B)
-        # each rigid row a constraint, none repeating another (B Y Bᵀ must be invertible); with
-        # compliant joints repeated rows are joints in parallel, the bracket's Y_j keeps it
-        # invertible (a singular one shows up as inf/NaN below)
-        if joint is None and np.linalg.matrix_rank(Bn) < m:
-            raise ValueError(
-                f"`couple(interface=...)` must have independent rows (each a compatibility "
-                f"constraint between DOFs), got rank {np.linalg.matrix_rank(Bn)} for {m} rows: "
-                "a zero or repeated row"
-            )
-        Be = [[0 if Bn[k, i] == 0 else Be[k][i] for i in range(B.shape[1])] for k in range(m)]
     Je = None
     if joint is not None:
         J = _checks.numeric(joint, "couple(joint=...)").astype(jnp.complex128)
@@ -107,6 +95,26 @@ def couple(
             raise ValueError(f"`couple(joint=...)` must have shape (..., {m}, {m}), got {J.shape}")
         J = _checks.finite(J, "couple(joint=...)")
         Je = entries(J)
+    if _checks.is_concrete(B):  # exact zeros of a concrete B are structural
+        Bn = np.asarray(B)
+        # Each rigid row a constraint, none repeating another: B Y Bᵀ must be invertible on
+        # them.  A compliant joint's row may repeat another (joints in parallel: its Y_j keeps
+        # the bracket invertible); a joint given as zero is rigid.  Traced joints: unknown.
+        if joint is None:
+            rigid = np.ones(m, bool)
+        elif _checks.is_concrete(J):
+            Jn = np.asarray(J).reshape(-1, m, m)
+            rigid = np.all(Jn[:, np.arange(m), np.arange(m)] == 0, axis=0)
+        else:
+            rigid = np.zeros(m, bool)
+        rank = np.linalg.matrix_rank(Bn[rigid]) if rigid.any() else 0
+        if rank < int(rigid.sum()):
+            raise ValueError(
+                f"`couple(interface=...)` must have independent rows for its rigid joints "
+                f"(each a compatibility constraint between DOFs), got rank {rank} for "
+                f"{int(rigid.sum())} rows: a zero or repeated row"
+            )
+        Be = [[0 if Bn[k, i] == 0 else Be[k][i] for i in range(B.shape[1])] for k in range(m)]
     batch = Y.shape[:-2]
     if joint is not None:
         try:

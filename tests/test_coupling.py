@@ -107,6 +107,17 @@ def test_compliant_joints_in_parallel_are_one_joint_of_their_summed_stiffness():
     J = np.diag([1 / k1, 1 / k2]).astype(complex)
     ref = Y[0] - Y[0] @ B.T @ np.linalg.solve(B @ Y[0] @ B.T + J, B @ Y[0])
     np.testing.assert_allclose(two[0], ref, rtol=1e-12)
+    # joints given as zero are rigid: repeated (or scaled) rows are refused as without joints
+    # (finite and 29 % off the one-row result had come back)
+    for rows in (B, np.array([[1.0, -1.0, 0.0], [3.0, -3.0, 0.0]])):
+        with pytest.raises(ValueError, match=r"independent rows for its rigid joints .* got "
+                                             r"rank 1 for 2 rows"):
+            fdjax.couple(Y, rows, np.zeros((1, 2, 2), complex))
+    # one rigid, one compliant joint on the same row: the compliant one keeps it invertible
+    mixed = np.asarray(fdjax.couple(Y, B, np.diag([0.0, 1 / k2]).astype(complex)[None]))
+    J = np.diag([0.0, 1 / k2]).astype(complex)
+    ref = Y[0] - Y[0] @ B.T @ np.linalg.solve(B @ Y[0] @ B.T + J, B @ Y[0])
+    np.testing.assert_allclose(mixed[0], ref, rtol=1e-12)
 
 
 def test_inputs_that_are_not_numbers_or_do_not_broadcast_are_named():

@@ -710,7 +710,7 @@ def test_no_retrace_for_new_parameter_values():
     @eqx.filter_jit
     @eqx.debug.assert_max_traces(max_traces=1)
     def response(m):
-        return m.frf(FREQ), m.discretize(1 / 8000).frf(FREQ)
+        return m.frf(FREQ), m.discretize(1 / 8000).frf(FREQ[FREQ < 4000.0])  # below Nyquist
 
     response(mcm_from(jnp.asarray(THETA)))
     response(mcm_from(jnp.asarray(THETA * 1.05)))
@@ -867,6 +867,35 @@ def test_to_sos_is_what_the_sampled_loop_runs(case, method):
         u = np.random.default_rng(0).normal(size=2000)
         y = np.asarray(d.apply(jnp.asarray(u)))
         np.testing.assert_allclose(sig.sosfilt(sos, u), y, rtol=0, atol=1e-12 * np.max(np.abs(y)))
+
+
+def test_to_sos_of_stages_with_little_or_no_direct_gain():
+    """A stage whose direct gain vanishes is a delay: its export raised numpy's LinAlgError.  One
+    whose direct gain nearly cancels (1e-10) lost its zeros in A − BC/D (0.66 relative off):
+    the factorisation nearer the stage's own response is taken.  Measured 2.1e-15, 1.1e-14 and
+    4.3e-10 against sosfreqz."""
+    T = 1.25e-4
+    f = np.geomspace(1.0, 3999.0, 400)
+    for rows, rtol in ((np.array([[0.0, 0.3, 0.1, 1.0, -1.6, 0.8]]), 1e-13),
+                       (np.array([[0.5, 0.3, 0.1, 1.0, -1.6, 0.8],
+                                  [-0.5, 0.2, -0.05, 1.0, -1.9, 0.95]]), 1e-13),
+                       (np.array([[0.5, 0.3, 0.1, 1.0, -1.6, 0.8],
+                                  [-0.5 + 1e-10, 0.2, -0.05, 1.0, -1.9, 0.95]]), 2e-9)):
+        d = DiscreteFilter(np.zeros((0, 6)), rows[None], T)
+        _, h = sig.sosfreqz(d.to_sos(), worN=2 * np.pi * f * T)
+        np.testing.assert_allclose(h, np.asarray(d.frf(f)), rtol=rtol)
+
+
+def test_discrete_frf_refuses_aliased_frequencies_under_jit():
+    """With the filter a jit argument its period is traced: a frequency above Nyquist returned
+    the aliased response silently (|G(7900 Hz)| = |G(100 Hz)| at 8 kHz)."""
+    d = PeakFilter(1.0, W, 0.1, 0.0).discretize(1.25e-4)
+    run = eqx.filter_jit(lambda d, f: d.frf(f))
+    np.testing.assert_allclose(run(d, jnp.array([100.0, 3999.0])),
+                               d.frf([100.0, 3999.0]), rtol=1e-14)
+    with pytest.raises(CHECK_FAILED, match=r"`DiscreteFilter.frf\(freq_hz=...\)` must be at most "
+                                           r"the Nyquist frequency"):
+        jax.block_until_ready(run(d, jnp.array([100.0, 7900.0])))
 
 
 def test_to_sos_needs_concrete_values():

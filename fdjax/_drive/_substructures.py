@@ -48,8 +48,6 @@ def _nut_point(shaft: Rod, l, where: str) -> Array:
     return eqx.error_if(l, ~ok, f"`{where}` must be strictly inside (0, L) m")
 
 
-LARGEST_SCREW_DIAMETER_M = _checks.LARGEST_SCREW_DIAMETER_M
-
 HIGHEST_POINT_M = 5.0
 """No point of a feed drive's carriage or table lies farther from the pitch centre (a tall
 gantry's tool is about 2 m from its guideways): a height beyond it (m) was given in mm."""
@@ -61,8 +59,8 @@ revolution): a lead beyond it (m) was given in mm."""
 
 _SCREW_SIZES = (
     ("length", _checks.LONGEST_TRAVEL_M, "no ball screw is longer"),
-    ("diameter", LARGEST_SCREW_DIAMETER_M, "no ball screw is thicker"),
-    ("bore_diameter", LARGEST_SCREW_DIAMETER_M, "no ball screw is thicker"),
+    ("diameter", _checks.LARGEST_SCREW_DIAMETER_M, "no ball screw is thicker"),
+    ("bore_diameter", _checks.LARGEST_SCREW_DIAMETER_M, "no ball screw is thicker"),
     ("lead", LARGEST_LEAD_M, "per revolution; no ball screw has a longer lead"),
 )
 """The plausibility limits of :class:`Screw` (field, most in m, why)."""

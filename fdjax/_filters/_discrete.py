@@ -280,20 +280,42 @@ def _sum_to_biquads(rows: np.ndarray, direct: float) -> list[np.ndarray]:
     poles); zeros left over go in sections with a unit denominator, the gain in the first."""
     dens = [r[3:] for r in rows]
     poles = [a for a in dens if np.any(a[1:] != 0.0)]
+    candidates = [_by_polynomial(rows, direct, dens, poles)]
     gain = direct + float(np.sum(rows[:, 0]))  # the sum's value at z⁻¹ = 0
     if gain != 0.0:
         # The zeros as the eigenvalues of A − B C/D of the sum's DF2T realisation (that of
-        # ``_sos_block_ss``), not as roots of the expanded numerator: with several lightly
-        # damped poles near z = 1 the polynomial's roots lose their accuracy (4 peaks at
-        # 20–60 Hz sampled at 16 kHz: a cascade 182× off the filter).
+        # ``_sos_block_ss``): with several lightly damped poles near z = 1 the polynomial's
+        # roots lose their accuracy (4 peaks at 20–60 Hz sampled at 16 kHz: a cascade 182×
+        # off the filter), while these lose theirs as D → 0 (‖BC‖/|D| grows).
         b0, b1, b2, a1, a2 = (rows[:, i] for i in (0, 1, 2, 4, 5))
         A = np.zeros((2 * len(rows), 2 * len(rows)))
         for k in range(len(rows)):
             A[2 * k:2 * k + 2, 2 * k:2 * k + 2] = [[-a1[k], 1.0], [-a2[k], 0.0]]
         B = np.stack([b1 - a1 * b0, b2 - a2 * b0], -1).reshape(-1)
         C = np.tile([1.0, 0.0], len(rows))
-        zeros = _quadratics(np.linalg.eigvals(A - np.outer(B, C) / gain))
-        return _paired(zeros, poles, gain)
+        zeros = np.linalg.eigvals(A - np.outer(B, C) / gain)
+        if np.all(np.isfinite(zeros)):
+            candidates.append(_paired(_quadratics(zeros), poles, gain))
+    # the factorisation whose cascade is nearest the sum on the unit circle (the sum's own
+    # poles' angles included, where the response is largest)
+    angles = np.concatenate([np.linspace(0.0, np.pi, 257), np.abs(np.angle(np.concatenate(
+        [np.roots(a) for a in poles] or [np.zeros(0)])))])
+    zi = np.exp(-1j * angles)
+    exact = direct + sum(np.polyval(r[2::-1], zi) / np.polyval(r[5:2:-1], zi) for r in rows)
+    scale = np.maximum(np.abs(exact), 1e-300)
+
+    def error(sections):
+        got = np.prod([np.polyval(r[2::-1], zi) / np.polyval(r[5:2:-1], zi) for r in sections],
+                      axis=0)
+        e = float(np.max(np.abs(got - exact) / scale))
+        return e if np.isfinite(e) else np.inf
+
+    return min(candidates, key=error)
+
+
+def _by_polynomial(rows, direct, dens, poles) -> list[np.ndarray]:
+    """The biquads of ``direct`` + Σ_k B_k/A_k from the roots of the expanded numerator; a
+    numerator that starts with zeros (no direct gain) is a delay, in sections z⁻¹."""
     num = direct * np.array([1.0])
     for a in dens:
         num = np.polymul(num, a)
@@ -306,8 +328,11 @@ def _sum_to_biquads(rows: np.ndarray, direct: float) -> list[np.ndarray]:
     num = np.trim_zeros(np.asarray(num, float), "b")  # trailing zeros: zeros at z = 0 … none
     if num.size == 0:
         return [np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0])]
+    delay = num.size - np.trim_zeros(num, "f").size
+    num = num[delay:]
     gain = num[0]
-    return _paired(_quadratics(np.roots(num / gain)) if num.size > 1 else [], poles, gain)
+    out = _paired(_quadratics(np.roots(num / gain)) if num.size > 1 else [], poles, gain)
+    return out + [np.array([0.0, 1.0, 0.0, 1.0, 0.0, 0.0])] * delay
 
 
 def _paired(zeros: list[np.ndarray], poles: list[np.ndarray], gain: float) -> list[np.ndarray]:
@@ -392,6 +417,10 @@ class DiscreteFilter(eqx.Module):
             f = check(f, lambda v: v <= top * (1 + 1e-12), where,
                       f"at most the Nyquist frequency {top:.6g} Hz of the sample period "
                       f"{float(self.dt):.6g} s ({top * 2 * math.pi:.6g} rad/s: the grid is in Hz)")
+        else:
+            f = eqx.error_if(f, jnp.any(f * self.dt > 0.5 * (1 + 1e-12)),
+                             f"`{where}` must be at most the Nyquist frequency 1/(2 dt) (the "
+                             f"grid is in Hz)")
         z = jnp.exp(to_complex(2 * jnp.pi * f * self.dt) * 1j)
         return finite_output(self.transfer(z), "DiscreteFilter.frf(...)")
 

@@ -56,7 +56,6 @@ def _assign(cost: Array) -> Array:
     return perm
 
 
-_CAP = 1e6  # a pairing 1000 tolerances apart is as bad as any farther one
 # A pairing with a missing mode (a NaN entry) costs as much as one five tolerances off: where
 # another track can take the mode, a track takes the gap rather than a mode farther than that
 # (a track with no frequency yet, NaN from the first position, takes the mode that appears).
@@ -79,7 +78,7 @@ def _track(freq, shapes, freq_tol, mac_tol, extrapolate: bool):
         # A mode missing at a position (NaN, from an order-free sweep) pairs with what is left
         # at the cost _MISSING (a cost of 1e30 had absorbed the real ones in round-off,
         # 1e30 + 100 == 1e30, and the pairing was the first permutation's).
-        perm = _assign(jnp.where(jnp.isnan(cost), _MISSING, jnp.minimum(cost, _CAP)))
+        perm = _assign(jnp.where(jnp.isnan(cost), _MISSING, cost))
         f_t, psi_t = f_new[perm], psi_new[perm]
         # a track whose mode is missing here keeps its last frequencies and shape
         gap = jnp.isnan(f_t)
