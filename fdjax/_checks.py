@@ -9,6 +9,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 
@@ -129,6 +130,20 @@ def inside(value, lo: float, hi: float, where: str, what: str = "the travel",
             raise ValueError(f"{err}; {noun} are in metres: {mm:.6g} mm is "
                              f"{mm / 1000:.6g} m") from None
         raise
+
+
+def below_nyquist(freq_hz, dt, where: str):
+    """A frequency grid (Hz) at most the Nyquist frequency 1/(2 dt) of a sample period ``dt``
+    (s), above which a sampled response aliases: a ValueError with the values where ``dt`` is
+    concrete, an ``eqx.error_if`` where it is traced."""
+    if is_concrete(dt):
+        top = 0.5 / float(dt)
+        return check(freq_hz, lambda v: v <= top * (1 + 1e-12), where,
+                     f"at most the Nyquist frequency {top:.6g} Hz of the sample period "
+                     f"{float(dt):.6g} s ({top * 2 * math.pi:.6g} rad/s: the grid is in Hz)")
+    return eqx.error_if(freq_hz, jnp.any(freq_hz * dt > 0.5 * (1 + 1e-12)),
+                        f"`{where}` must be at most the Nyquist frequency 1/(2 dt) (the grid "
+                        f"is in Hz)")
 
 
 def _in_mm(value, ok: Callable) -> float | None:
@@ -417,7 +432,6 @@ def constructor_checks(tree, fn: str):
     the model.  Their ValueError names the field (``NutJoint(stiffness=...)``) and ``fn``, the
     function the value was given to.  Modules with traced leaves are left to the checks that
     flow with the values.  Returns ``tree``."""
-    import dataclasses
 
     def visit(node):
         if isinstance(node, list | tuple):

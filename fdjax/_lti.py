@@ -88,12 +88,8 @@ class LTI(eqx.Module):
         where = "LTI.frf(freq_hz=...)"
         self._one("frf")
         f = _checks.frequency_grid(freq_hz, where)
-        if self.dt is not None and _checks.is_concrete(self.dt):
-            top = 0.5 / float(self.dt)
-            hint = f" ({top * _TWO_PI:.6g} rad/s: the grid is in Hz)"
-            f = _checks.check(f, lambda v: v <= top * (1 + 1e-12), where,
-                              f"at most the Nyquist frequency {top:.6g} Hz of the sample period "
-                              f"{float(self.dt):.6g} s{hint}")
+        if self.dt is not None:
+            f = _checks.below_nyquist(f, self.dt, where)
         return self.transfer(self.unit_circle_or_axis(_TWO_PI * f))
 
     def unit_circle_or_axis(self, omega) -> Complex[Array, "*shape"]:

@@ -34,7 +34,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Complex, Float, Inexact
 
 from .._checks import (
-    check,
+    below_nyquist,
     finite,
     finite_output,
     frequency_grid,
@@ -275,9 +275,10 @@ def _sum_to_biquads(rows: np.ndarray, direct: float) -> list[np.ndarray]:
     """``direct`` + Σ_k B_k/A_k (rows (k, 6), a0 = 1) as biquad rows [b0, b1, b2, 1, a1, a2]
     whose cascade product is the same transfer function: over the common denominator Π A_k the
     numerator is direct·Π A_k + Σ_k B_k Π_{j≠k} A_j; its zeros (the eigenvalues of A − B C/D
-    of the sum's realisation, or where D = 0 the roots of that polynomial), taken in conjugate
-    pairs, are paired with the sections' denominators (each with the zeros nearest its
-    poles); zeros left over go in sections with a unit denominator, the gain in the first."""
+    of the sum's realisation, or the roots of that polynomial, whichever cascade is nearer the
+    sum on the unit circle), taken in conjugate pairs, are paired with the sections'
+    denominators (each with the zeros nearest its poles); zeros left over go in sections with
+    a unit denominator, the gain in the first."""
     dens = [r[3:] for r in rows]
     poles = [a for a in dens if np.any(a[1:] != 0.0)]
     candidates = [_by_polynomial(rows, direct, dens, poles)]
@@ -301,12 +302,15 @@ def _sum_to_biquads(rows: np.ndarray, direct: float) -> list[np.ndarray]:
     angles = np.concatenate([np.linspace(0.0, np.pi, 257), np.abs(np.angle(np.concatenate(
         [np.roots(a) for a in poles] or [np.zeros(0)])))])
     zi = np.exp(-1j * angles)
-    exact = direct + sum(np.polyval(r[2::-1], zi) / np.polyval(r[5:2:-1], zi) for r in rows)
+
+    def section(r):  # (b0 + b1 z⁻¹ + b2 z⁻²)/(1 + a1 z⁻¹ + a2 z⁻²) at z⁻¹ = zi
+        return np.polyval(r[2::-1], zi) / np.polyval(r[5:2:-1], zi)
+
+    exact = direct + sum(section(r) for r in rows)
     scale = np.maximum(np.abs(exact), 1e-300)
 
     def error(sections):
-        got = np.prod([np.polyval(r[2::-1], zi) / np.polyval(r[5:2:-1], zi) for r in sections],
-                      axis=0)
+        got = np.prod([section(r) for r in sections], axis=0)
         e = float(np.max(np.abs(got - exact) / scale))
         return e if np.isfinite(e) else np.inf
 
@@ -412,15 +416,7 @@ class DiscreteFilter(eqx.Module):
         """Frequency response G(e^{i 2π f dt}) on a positive, increasing grid ``freq_hz`` (Hz)."""
         where = "DiscreteFilter.frf(freq_hz=...)"
         f = frequency_grid(freq_hz, where)
-        if is_concrete(self.dt):  # above the Nyquist frequency the response aliases
-            top = 0.5 / float(self.dt)
-            f = check(f, lambda v: v <= top * (1 + 1e-12), where,
-                      f"at most the Nyquist frequency {top:.6g} Hz of the sample period "
-                      f"{float(self.dt):.6g} s ({top * 2 * math.pi:.6g} rad/s: the grid is in Hz)")
-        else:
-            f = eqx.error_if(f, jnp.any(f * self.dt > 0.5 * (1 + 1e-12)),
-                             f"`{where}` must be at most the Nyquist frequency 1/(2 dt) (the "
-                             f"grid is in Hz)")
+        f = below_nyquist(f, self.dt, where)  # above it the response aliases
         z = jnp.exp(to_complex(2 * jnp.pi * f * self.dt) * 1j)
         return finite_output(self.transfer(z), "DiscreteFilter.frf(...)")
 
@@ -442,10 +438,11 @@ class DiscreteFilter(eqx.Module):
 
         the same transfer function as the sampled loop runs (``transfer``, ``step``).  The
         parallel bank 1 + Σ_p P_p and each series stage Σ_k S_qk are brought over their common
-        denominator, its zeros (the eigenvalues of A − BC/D of its realisation) taken in real
-        quadratics, each paired with the section poles nearest its zeros (a fitted notch stage
-        becomes the notch biquad and an FIR biquad).  Needs concrete values (not under
-        ``jit``); a new, writable float64 array.
+        denominator, its zeros (the eigenvalues of A − BC/D of its realisation, or the roots of
+        its numerator where those reproduce it better) taken in real quadratics, each paired
+        with the section poles nearest its zeros (a fitted notch stage becomes the notch biquad
+        and an FIR biquad).  Needs concrete values (not under ``jit``); a new, writable float64
+        array.
         """
         if not (is_concrete(self.parallel_sos) and is_concrete(self.series_sos)):
             raise TypeError(
