@@ -15,6 +15,14 @@ from ._linalg import entries, inv_entries, small_inv
 
 __all__ = ["LumpedModel", "chain_model", "three_mass"]
 
+_SYMMETRY_RTOL = 1e-12
+"""Largest |A − Aᵀ| accepted, relative to |A|'s entries: assembled matrices are symmetric to
+round-off (a few ulps)."""
+
+_PSD_RTOL = 1e-9
+"""Most negative eigenvalue of K or C accepted, relative to the largest |eigenvalue|: a free
+structure's rigid-body eigenvalue of 0 comes out within a few ulps of the largest."""
+
 
 def _matrix_field(name: str):
     """A float64 matrix field whose converter checks it is finite, so that the guarded value is
@@ -62,20 +70,24 @@ class LumpedModel(eqx.Module):
                 raise ValueError(
                     f"`LumpedModel({name}=...)` must have shape ({n}, {n}), got {a.shape}"
                 )
-        for name in ("stiffness", "damping"):
+        for name in ("mass", "stiffness", "damping"):
             a = getattr(self, name)
-            if _checks.is_concrete(a) and not np.allclose(np.asarray(a), np.asarray(a).T,
-                                                          rtol=1e-12, atol=0):
+            if not _checks.is_concrete(a):
+                continue  # checked where it is used (frf, modes) under jit
+            a = np.asarray(a)
+            if not np.allclose(a, a.T, rtol=_SYMMETRY_RTOL, atol=0):
                 raise ValueError(
                     f"`LumpedModel({name}=...)` must be symmetric (a reciprocal structure), "
-                    f"got max |A − Aᵀ| = {np.max(np.abs(np.asarray(a) - np.asarray(a).T)):.3g}"
+                    f"got max |A − Aᵀ| = {np.max(np.abs(a - a.T)):.3g}"
                 )
-        if _checks.is_concrete(self.mass):
-            m = np.asarray(self.mass)
-            if not np.allclose(m, m.T) or np.any(np.linalg.eigvalsh(0.5 * (m + m.T)) <= 0):
+            eig = np.linalg.eigvalsh(a)
+            if name == "mass" and np.any(eig <= 0):
+                raise ValueError("`LumpedModel(mass=...)` must be positive definite, got "
+                                 f"eigenvalues {_checks.fmt(eig)}")
+            if name != "mass" and np.any(eig < -_PSD_RTOL * np.max(np.abs(eig))):
                 raise ValueError(
-                    "`LumpedModel(mass=...)` must be symmetric positive definite, got "
-                    f"eigenvalues {_checks.fmt(np.linalg.eigvalsh(0.5 * (m + m.T)))}"
+                    f"`LumpedModel({name}=...)` must be positive semi-definite (a passive "
+                    f"structure), got eigenvalues {_checks.fmt(eig)}"
                 )
 
     @property
@@ -107,15 +119,9 @@ class LumpedModel(eqx.Module):
         """Receptance matrix ``H[f, i, j] = x_i / F_j`` (m/N) on a frequency grid in Hz."""
         freq_hz = _checks.frequency_grid(freq_hz, "LumpedModel.frf(freq_hz=...)")
         model = self
-        if not all(_checks.is_concrete(getattr(self, k)) for k in ("stiffness", "damping")):
-            # traced matrices (checked where concrete, in __check_init__): the mirrored upper
-            # triangle below is the receptance of a symmetric model only
-            for name in ("stiffness", "damping"):
-                a = getattr(model, name)
-                bad = jnp.max(jnp.abs(a - a.T)) > 1e-12 * jnp.max(jnp.abs(a))
-                model = eqx.tree_at(lambda m, name=name: getattr(m, name), model, eqx.error_if(
-                    a, bad, f"`LumpedModel({name}=...)` must be symmetric (a reciprocal "
-                    "structure)"))
+        # traced matrices (checked where concrete, in __check_init__): the mirrored upper
+        # triangle below is the receptance of a symmetric model only
+        model = _symmetric(self, ("mass", "stiffness", "damping"))
         upper, finite = _frf_upper(model, freq_hz)
         H = _mirror(upper, self.size)
         if _checks.is_concrete(finite):
@@ -135,17 +141,37 @@ class LumpedModel(eqx.Module):
         square root is not differentiated at ω² ≤ 0).  A mass matrix that is not positive
         definite (checked at construction where concrete) is an error here under ``jit``.
         """
-        L = jnp.linalg.cholesky(self.mass)
+        # cholesky reads M's lower triangle and eigh symmetrises: traced matrices that are not
+        # symmetric (checked where concrete, in __check_init__) would give wrong modes
+        model = _symmetric(self, ("mass", "stiffness"))
+        L = jnp.linalg.cholesky(model.mass)
         # NaN where M is not positive definite: refused at construction where M is concrete,
         # here where it is traced
         L = _checks.check(L, jnp.isfinite, "LumpedModel.modes()",
                           "computed from a symmetric positive definite mass matrix")
         Linv = jnp.linalg.inv(L)
-        lam, V = jnp.linalg.eigh(Linv @ self.stiffness @ Linv.T)
+        lam, V = jnp.linalg.eigh(Linv @ model.stiffness @ Linv.T)
+        # a negative ω² is a divergent mode, not a rigid-body one: K is not positive
+        # semi-definite (refused at construction where K is concrete, here where it is traced)
+        lam = _checks.check(lam, lambda x: x >= -_PSD_RTOL * abs(x).max(), "LumpedModel.modes()",
+                            "computed from a positive semi-definite stiffness matrix")
         shapes = Linv.T @ V
         flexible = lam > 0.0
         omega = jnp.where(flexible, jnp.sqrt(jnp.where(flexible, lam, 1.0)), 0.0)
         return omega / (2 * jnp.pi), shapes
+
+
+def _symmetric(model: LumpedModel, names) -> LumpedModel:
+    """``model`` with the traced matrices among ``names`` guarded to be symmetric (to
+    :data:`_SYMMETRY_RTOL`); concrete ones were checked at construction."""
+    for name in names:
+        a = getattr(model, name)
+        if _checks.is_concrete(a):
+            continue
+        bad = jnp.max(jnp.abs(a - a.T)) > _SYMMETRY_RTOL * jnp.max(jnp.abs(a))
+        model = eqx.tree_at(lambda m, name=name: getattr(m, name), model, eqx.error_if(
+            a, bad, f"`LumpedModel({name}=...)` must be symmetric (a reciprocal structure)"))
+    return model
 
 
 @eqx.filter_jit

@@ -39,12 +39,12 @@ from ._checks import (
     check,
     concrete_float,
     finite,
-    finite_output,
     inside,
     is_concrete,
     nonnegative,
     numeric,
     positive,
+    real_scalar,
     static_int,
 )
 
@@ -245,7 +245,9 @@ def _evaluate(traj: Trajectory, t: Float[Array, "*t"]):
     k = traj.num_segments
     # One row per segment, gathered once: (t_i, r_i, v_i, a_i, j_i).
     rows = jnp.stack([tk[:-1], rk[:-1], vk[:-1], ak[:-1], traj.jerk], axis=-1)
-    tc = jnp.clip(t, 0.0, T)
+    # t clamped to [0, T] by selection, not by jnp.clip: at t = T (or 0) exactly, clip's
+    # derivative splits in half between t and T, whereas r(t) at a fixed t moves with t only
+    tc = jnp.where(t > T, T, jnp.where(t < 0.0, 0.0, t))
     # The last segment starting at or before tc (zero-length segments are skipped). For the
     # few knots of a move, comparing with all of them (O(k) per time) compiles fastest; long
     # sequences use the binary search (O(log k)).
@@ -257,7 +259,7 @@ def _evaluate(traj: Trajectory, t: Float[Array, "*t"]):
     r = ri + tau * (vi + tau * (ai / 2 + tau * ji / 6))
     v = vi + tau * (ai + tau * ji / 2)
     a = ai + tau * ji
-    # At rest outside [0, T]: r is already held by the clip; v, a, j are switched off.
+    # At rest outside [0, T]: r is already held by the clamp; v, a, j are switched off.
     moving = ((t >= 0.0) & (t <= T)).astype(t.dtype)
     return r, v * moving, a * moving, ji * moving
 
@@ -367,37 +369,67 @@ def jerk_limited(
     - ``start``: initial position in m.
     - ``dwell``: rest time appended after the move in s (a zero-jerk segment).
 
+    ``distance`` and the limits must be concrete numbers (the segments' durations are computed
+    from them in Python); ``start`` and ``dwell`` are leaves of the result and may be traced
+    (``jit``, ``vmap``, ``grad``).
+
     **Returns:** a ``Trajectory`` with 8 segments (zero-length ones where a phase is absent), of
     duration T + ``dwell``, ending at ``start + distance``.
     """
     fn = "jerk_limited({}=...)"
     d = _move(distance, fn.format("distance"))
-    v = _number(v_max, fn.format("v_max"), positive)
-    a = _number(a_max, fn.format("a_max"), positive)
-    j = _number(j_max, fn.format("j_max"), positive)
-    r0 = _number(start, fn.format("start"), finite)
-    rest = _number(dwell, fn.format("dwell"), nonnegative)
+    limits = _limits(v_max, a_max, j_max, fn)
+    return _double_s(d, limits, _start(start, fn), _dwell(dwell, fn), fn)
 
+
+def _limits(v_max, a_max, j_max, fn: str) -> tuple[float, float, float]:
+    """The concrete, positive limits (v, a, j) of a move; ``fn`` formats the argument names."""
+    names = {"v_max": v_max, "a_max": a_max, "j_max": j_max}
+    return tuple(_number(x, fn.format(k), positive) for k, x in names.items())
+
+
+def _start(value, fn: str) -> Array:
+    """The initial position (m): a finite real scalar, concrete or traced (it is the leaf r0)."""
+    where = fn.format("start")
+    return finite(real_scalar(value, where), where)
+
+
+def _dwell(value, fn: str) -> Array:
+    """A rest time (s): a finite, non-negative real scalar, concrete or traced (a leaf)."""
+    where = fn.format("dwell")
+    return nonnegative(real_scalar(value, where), where)
+
+
+def _double_s(d: float, limits, r0, rest, fn: str) -> Trajectory:
+    """``jerk_limited``'s body: the move by ``d`` m under ``limits``, then ``rest`` s at rest;
+    ``fn`` is the public function called, for the message of a move too long to time."""
+    v, a, j = limits
     tj, tc, tv = _double_s_durations(abs(d), v, a, j)
-    durations = np.array([tj, tc, tj, tv, tj, tc, tj, rest], dtype=np.float64)
-    durations = finite_output(durations, "jerk_limited(...)")
+    durations = np.array([tj, tc, tj, tv, tj, tc, tj], dtype=np.float64)
+    if not np.all(np.isfinite(durations)):
+        names = fn.format("v_max=..., a_max=..., j_max")
+        raise ValueError(
+            f"`{names}` are too small for a move of {abs(d):.6g} m: its durations overflow"
+            f" (got v_max={v:.6g} m/s, a_max={a:.6g} m/s², j_max={j:.6g} m/s³)"
+        )
     s = float(np.sign(d))
     jerks = s * j * np.array([1.0, 0.0, -1.0, 0.0, -1.0, 0.0, 1.0, 0.0])
-    return _from_durations(durations, jerks, r0)
+    return _from_durations(jnp.concatenate([jnp.asarray(durations), rest[None]]), jerks, r0)
 
 
-def _at_rest(traj: Trajectory) -> bool:
-    """Whether a concrete trajectory ends at rest, to 1e-9 of its velocity/acceleration scale.
+@eqx.filter_jit
+def _end_state(traj: Trajectory):
+    """The final velocity and acceleration, and whether they are zero to 1e-9 of their scales.
 
-    The scale is the sum of the absolute increments, Σ|a_m h_m + j_m h_m²/2| and Σ|j_m h_m|,
-    which bounds the rounding of the recurrence by a few eps per term.
+    The scales are the sums of the absolute increments, Σ|a_m h_m + j_m h_m²/2| and Σ|j_m h_m|,
+    which bound the rounding of the recurrence by a few eps per term.
     """
-    _, vk, ak = (np.asarray(x) for x in traj.knot_states())
-    h = np.asarray(traj.durations)
-    jm = np.asarray(traj.jerk)
-    a_scale = np.sum(np.abs(jm * h))
-    v_scale = np.sum(np.abs(h * (ak[:-1] + h * jm / 2)))
-    return bool(abs(vk[-1]) <= 1e-9 * v_scale and abs(ak[-1]) <= 1e-9 * a_scale)
+    _, vk, ak = _knot_states(traj)
+    h, jm = traj.durations, traj.jerk
+    a_scale = jnp.sum(jnp.abs(jm * h))
+    v_scale = jnp.sum(jnp.abs(h * (ak[:-1] + h * jm / 2)))
+    at_rest = (jnp.abs(vk[-1]) <= 1e-9 * v_scale) & (jnp.abs(ak[-1]) <= 1e-9 * a_scale)
+    return vk[-1], ak[-1], at_rest
 
 
 def concatenate(*trajectories: Trajectory) -> Trajectory:
@@ -407,8 +439,7 @@ def concatenate(*trajectories: Trajectory) -> Trajectory:
     however late it plays) and the motion is re-integrated, so each later piece moves
     *relative* to where the previous one stops (its own ``r0`` is ignored) and the result
     starts at the first piece's ``r0``. Every piece but the last must end at rest (v = a = 0),
-    otherwise it would not play as it does on its own; this is checked when the durations are
-    concrete.
+    otherwise it would not play as it does on its own; this is checked, also under ``jit``.
     """
     if not trajectories:
         raise ValueError("`concatenate(*trajectories)` needs at least one Trajectory, got none")
@@ -418,20 +449,27 @@ def concatenate(*trajectories: Trajectory) -> Trajectory:
                 f"`concatenate(*trajectories)` takes Trajectory objects, got "
                 f"{type(traj).__name__} at position {n}"
             )
+    moving = []  # traced pieces' flags: whether each ends in motion
     for n, traj in enumerate(trajectories[:-1]):
-        concrete = is_concrete(traj.durations) and is_concrete(traj.jerk)
-        if concrete and not _at_rest(traj):
-            _, vk, ak = traj.knot_states()
-            raise ValueError(
-                f"`concatenate(*trajectories)`: trajectory {n} must end at rest to be followed "
-                f"by another, got final velocity {float(vk[-1]):.6g} m/s and acceleration "
-                f"{float(ak[-1]):.6g} m/s²"
-            )
+        v_end, a_end, at_rest = _end_state(traj)
+        if is_concrete(at_rest):
+            if not bool(at_rest):
+                raise ValueError(
+                    f"`concatenate(*trajectories)`: trajectory {n} must end at rest to be "
+                    f"followed by another, got final velocity {float(v_end):.6g} m/s and "
+                    f"acceleration {float(a_end):.6g} m/s²"
+                )
+        else:
+            moving.append(jnp.logical_not(at_rest))
     durations = check(jnp.concatenate([traj.durations for traj in trajectories]),
                       lambda h: (h >= 0) & jnp.isfinite(jnp.cumsum(h)),
                       "concatenate(*trajectories)",
                       "made of segments of finite, non-negative durations, with finite knot "
                       "times (their running sum)")
+    if moving:
+        durations = eqx.error_if(durations, jnp.any(jnp.stack(moving)),
+                                 "`concatenate(*trajectories)`: every trajectory but the last "
+                                 "must end at rest (v = a = 0) to be followed by another")
     return _from_durations(durations,
                            jnp.concatenate([traj.jerk for traj in trajectories]),
                            trajectories[0].r0)
@@ -470,15 +508,17 @@ def reciprocating(
     - ``cycles``: number of out-and-back cycles, an integer ≥ 1.
     - ``dwell``: rest after each stroke in s.
     - ``start``: initial (and final) position in m.
+
+    ``stroke``, the limits and ``cycles`` must be concrete (they fix the segments); ``start``
+    and ``dwell`` may be traced (``jit``, ``vmap``, ``grad``).
     """
     cycles = static_int(cycles, "reciprocating(cycles=...)", 1)
     fn = "reciprocating({}=...)"
     h = _move(stroke, fn.format("stroke"))
-    names = {"v_max": v_max, "a_max": a_max, "j_max": j_max}
-    limits = tuple(_number(x, fn.format(k), positive) for k, x in names.items())
-    rest = _number(dwell, fn.format("dwell"), nonnegative)
-    r0 = _number(start, fn.format("start"), finite)
+    limits = _limits(v_max, a_max, j_max, fn)
+    rest = _dwell(dwell, fn)
+    r0 = _start(start, fn)
 
-    out = jerk_limited(h, *limits, start=r0, dwell=rest)
-    back = jerk_limited(-h, *limits, start=r0 + h, dwell=rest)
+    out = _double_s(h, limits, r0, rest, fn)
+    back = _double_s(-h, limits, r0 + h, rest, fn)
     return concatenate(*([out, back] * int(cycles)))

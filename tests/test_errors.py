@@ -25,7 +25,7 @@ FREQ = np.linspace(10.0, 100.0, 5)
          r"`chain_model\(stiffnesses=\.\.\., dampings=\.\.\.\)` must have 1 entries for 2 masses, "
          r"got 2 and 1"),
         (lambda: fdjax.LumpedModel([[1.0, 0], [0, -1.0]], np.eye(2), np.eye(2)),
-         r"LumpedModel\(mass=\.\.\.\)` must be symmetric positive definite"),
+         r"LumpedModel\(mass=\.\.\.\)` must be positive definite, got eigenvalues \[-1\.,  1\.\]"),
         (lambda: fdjax.Rod.axial(diameter=0.03, length=0.0),
          r"`Rod\.axial\(length=\.\.\.\)` must be finite and positive, got 0"),
         (lambda: fdjax.Rod.axial(diameter=-0.03, length=1.0),

@@ -671,3 +671,57 @@ def test_a_move_in_mm_is_refused():
         jerk_limited(3e4, 0.1, 2.0, 200.0)
     rk, _, _ = jerk_limited(-20.0, 1.0, 2.0, 200.0, start=1.0).knot_states()
     assert float(rk[-1]) == pytest.approx(-19.0, rel=1e-12)
+
+
+def test_start_and_dwell_may_be_traced_and_the_limits_are_named_when_too_small():
+    """``start`` and ``dwell`` are leaves (r0, a rest duration): under ``vmap`` and ``grad``
+    they give what the eager call gives, and a reciprocating cycle lasts 2·dwell longer per unit
+    of dwell (exactly: the duration is a sum of segments); the limits and the stroke, which fix
+    the segments, still must be concrete.  A limit so small that the durations overflow is
+    named with the function called, not reported as a non-finite result of another."""
+    starts = jnp.array([0.1, 0.2])
+    ends = jax.vmap(lambda s: reciprocating(start=s, cycles=2).evaluate(0.05)[0])(starts)
+    eager = [float(reciprocating(start=float(s), cycles=2).evaluate(0.05)[0]) for s in starts]
+    np.testing.assert_array_equal(np.asarray(ends), eager)
+    assert float(jax.grad(lambda w: reciprocating(dwell=w, cycles=3).duration)(0.01)) == 6.0
+    assert float(jax.grad(lambda w: jerk_limited(*FULL, dwell=w).duration)(0.0)) == 1.0
+    with pytest.raises(CHECK_FAILED, match=r"`reciprocating\(dwell=\.\.\.\)` must be finite "
+                                           r"and non-negative"):
+        jax.block_until_ready(jax.jit(lambda w: reciprocating(dwell=w).duration)(-1.0))
+    with pytest.raises(ValueError, match=r"`reciprocating\(v_max=\.\.\.\)` must be a concrete"):
+        jax.jit(lambda v: reciprocating(v_max=v).duration)(0.1)
+    with pytest.raises(ValueError, match=r"`reciprocating\(v_max=\.\.\., a_max=\.\.\., "
+                                         r"j_max=\.\.\.\)` are too small for a move of 0\.005 m"
+                                         r": its durations overflow \(got v_max="):
+        reciprocating(v_max=1e-320)
+    with pytest.raises(ValueError, match=r"`jerk_limited\(v_max=\.\.\., a_max=\.\.\., "
+                                         r"j_max=\.\.\.\)` are too small for a move of 0\.1 m"):
+        jerk_limited(0.1, 0.1, 2.0, 1e-320)
+
+
+def test_concatenate_refuses_a_moving_piece_under_jit_too():
+    """A piece that does not end at rest is refused when its durations are traced too (it was
+    joined silently: the velocity jumped from 0.61 m/s to 0 at the join); pieces at rest join
+    under jit as they do eagerly."""
+    ramp = Trajectory(t_knots=[0.0, 1.0], jerk=[1.0])
+    one = jerk_limited(5e-3, 0.1, 2.0, 200.0)
+    t = jnp.array([0.5, 1.1, 2.0])
+    run = eqx.filter_jit(lambda a, b: concatenate(a, b).evaluate(t)[0])
+    with pytest.raises(CHECK_FAILED, match=r"`concatenate\(\*trajectories\)`: every trajectory "
+                                           r"but the last must end at rest"):
+        jax.block_until_ready(run(ramp, one))
+    two = jerk_limited(-5e-3, 0.1, 2.0, 200.0)
+    np.testing.assert_array_equal(np.asarray(run(one, two)),
+                                  np.asarray(concatenate(one, two).evaluate(t)[0]))
+
+
+def test_derivatives_at_the_end_of_a_moving_trajectory_are_its_rates():
+    """r(t) = t³ on [0, 1], held after: at t = T exactly, dr/dt and dv/dt equal the v and a that
+    ``evaluate`` gives (3 and 6: the clamp to [0, T] is a selection; jnp.clip had split the
+    derivative in half, 1.5 and 3)."""
+    cube = Trajectory(t_knots=[0.0, 1.0], jerk=[6.0])
+    _, v, a, _ = cube.evaluate(1.0)
+    assert (float(v), float(a)) == (3.0, 6.0)
+    assert float(jax.grad(lambda s: cube.evaluate(s)[0])(1.0)) == 3.0
+    assert float(jax.grad(lambda s: cube.evaluate(s)[1])(1.0)) == 6.0
+    assert float(jax.grad(lambda s: cube.evaluate(s)[0])(1.5)) == 0.0  # held after T
