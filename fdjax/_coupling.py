@@ -18,6 +18,7 @@ carriage at the nut): the bracket in Eq. (1) is ``B Y Bᵀ + 1/(k_ja + iωc_ja)`
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Complex, Float
@@ -85,6 +86,9 @@ def couple(
             f"`couple(interface=...)` must have shape (m, {Y.shape[-1]}), got {B.shape}"
         )
     m = B.shape[0]
+    if m == 0:
+        raise ValueError(f"`couple(interface=...)` must have at least one row (a joint), got "
+                         f"shape {B.shape}")
     B = _checks.finite(B, "couple(interface=...)")
     Bc = B.astype(jnp.complex128)
     Be = [[Bc[k, i] for i in range(B.shape[1])] for k in range(m)]
@@ -95,25 +99,23 @@ def couple(
             raise ValueError(f"`couple(joint=...)` must have shape (..., {m}, {m}), got {J.shape}")
         J = _checks.finite(J, "couple(joint=...)")
         Je = entries(J)
-    if _checks.is_concrete(B):  # exact zeros of a concrete B are structural
-        Bn = np.asarray(B)
-        # Each rigid row a constraint, none repeating another: B Y Bᵀ must be invertible on
-        # them.  A compliant joint's row may repeat another (joints in parallel: its Y_j keeps
-        # the bracket invertible); a joint given as zero is rigid.  Traced joints: unknown.
-        if joint is None:
-            rigid = np.ones(m, bool)
-        elif _checks.is_concrete(J):
-            Jn = np.asarray(J).reshape(-1, m, m)
-            rigid = np.all(Jn[:, np.arange(m), np.arange(m)] == 0, axis=0)
-        else:
-            rigid = np.zeros(m, bool)
-        rank = np.linalg.matrix_rank(Bn[rigid]) if rigid.any() else 0
-        if rank < int(rigid.sum()):
+    # Each rigid row a constraint, none repeating another: B Y Bᵀ must be invertible on them.
+    # A compliant joint's row may repeat another (joints in parallel: its Y_j keeps the bracket
+    # invertible); a joint whose receptance is zero (at a batch index) is rigid there.
+    rank, rigid, at = _rigid_rank(B, None if joint is None else J)
+    if _checks.is_concrete(rank):
+        if at is not None:
             raise ValueError(
                 f"`couple(interface=...)` must have independent rows for its rigid joints "
-                f"(each a compatibility constraint between DOFs), got rank {rank} for "
-                f"{int(rigid.sum())} rows: a zero or repeated row"
+                f"(each a compatibility constraint between DOFs; a joint of zero receptance is "
+                f"rigid), got rank {rank} for {rigid} rows{at}: a zero or repeated row"
             )
+    else:
+        Y = eqx.error_if(Y, rank < rigid, "`couple(interface=...)` must have independent rows "
+                         "for its rigid joints (each a compatibility constraint between DOFs; a "
+                         "joint of zero receptance is rigid): a zero or repeated row")
+    if _checks.is_concrete(B):  # exact zeros of a concrete B are structural
+        Bn = np.asarray(B)
         Be = [[0 if Bn[k, i] == 0 else Be[k][i] for i in range(B.shape[1])] for k in range(m)]
     batch = Y.shape[:-2]
     if joint is not None:
@@ -124,8 +126,44 @@ def couple(
                              f"batch {Y.shape[:-2]}, got batch {J.shape[:-2]}") from None
     out = couple_entries(entries(Y), Be, Je)
     out = from_entries(out, shape=batch, dtype=jnp.complex128)
-    # a singular interface bracket (B Y Bᵀ + Y_j not invertible) shows up as inf/NaN here
-    return _checks.finite_output(out, "couple(...)")
+    # every input is finite: a non-finite result is a singular bracket B Y Bᵀ + Y_j
+    return _checks.check(out, jnp.isfinite, "couple(receptance=..., interface=..., joint=...)",
+                         "such that the interface bracket B·Y·Bᵀ + Y_j is invertible (a finite "
+                         "coupled receptance)")
+
+
+def _rigid_rank(B, J):
+    """The rank of the rigid joints' rows of ``B`` and their number, per batch index of the
+    joints ``J`` (all joints rigid when ``J`` is None); for concrete inputs, those at the first
+    batch index where the rank falls short, and " at batch index i" naming it ("" without a
+    batch; None if the rank falls short nowhere).
+
+    The rows are scaled to unit length and the compliant joints' rows replaced by unit vectors
+    of their own (stacked as ``[diag(r) B̂ | diag(1 − r)]``, r = 1 for a rigid joint), so the
+    rows of the stack are independent exactly when the rigid rows are; its rank counts the
+    singular values above ``σ_max · max(m, n + m) · eps`` (NumPy's ``matrix_rank``).  A zero
+    rigid row has rank 0.
+    """
+    m, n = B.shape
+    rigid = (jnp.ones((m,), bool) if J is None
+             else jnp.diagonal(J, axis1=-2, axis2=-1) == 0)  # (*joint batch, m)
+    norms = jnp.linalg.norm(B, axis=1, keepdims=True)
+    unit = B / jnp.where(norms > 0, norms, 1.0)
+    r = rigid[..., :, None].astype(jnp.float64)
+    stack = jnp.concatenate([r * unit, (1.0 - r) * jnp.eye(m)], axis=-1)
+    sv = jnp.linalg.svd(stack, compute_uv=False)
+    tol = jnp.max(sv, axis=-1, keepdims=True) * max(m, n + m) * jnp.finfo(jnp.float64).eps
+    rank = jnp.sum(sv > tol, axis=-1) - jnp.sum(~rigid, axis=-1)
+    count = jnp.sum(rigid, axis=-1)
+    if not (_checks.is_concrete(rank) and _checks.is_concrete(count)):
+        return rank, count, None
+    rank, count = np.asarray(rank), np.asarray(count)
+    short = np.argwhere(np.atleast_1d(rank < count))  # (bad, ndim), one column without a batch
+    if len(short) == 0:
+        return rank, count, None
+    idx = tuple(int(k) for k in short[0]) if rank.ndim else ()
+    at = "" if not idx else f" at batch index {idx[0] if len(idx) == 1 else idx}"
+    return int(rank[idx]), int(count[idx]), at
 
 
 def block_diagonal(*blocks: Entries) -> Entries:

@@ -164,3 +164,42 @@ def test_couple_under_jit_vmap_and_grad():
     x, h = jnp.log(1e9), 1e-5
     fd = (float(f(x + h)) - float(f(x - h))) / (2 * h)
     np.testing.assert_allclose(float(jax.grad(f)(x)), fd, rtol=2e-8)  # measured 2.3e-9
+
+
+def test_rigid_rows_are_checked_under_jit_and_at_each_batch_index():
+    """Repeated or scaled rigid rows are refused under jit as eagerly, whether B or the joints
+    are traced (a single frequency came back finite and 69 % off the one-row coupling); a joint
+    that is zero at one batch index only is rigid there, and that index is named; an interface
+    without rows and a singular bracket are named as such."""
+    import equinox as eqx
+    from jit_errors import CHECK_FAILED
+
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(3, 3)) + 1j * rng.normal(size=(3, 3))
+    Y = (1e-6 * (A + A.T))[None]  # one frequency: nothing else in the batch makes it inf
+    B = np.array([[1.0, -1.0, 0.0], [3.0, -3.0, 0.0]])
+    pattern = r"`couple\(interface=\.\.\.\)` must have independent rows for its rigid joints"
+    with pytest.raises(CHECK_FAILED, match=pattern):
+        jax.block_until_ready(eqx.filter_jit(fdjax.couple)(Y, B))
+    with pytest.raises(CHECK_FAILED, match=pattern):
+        jax.block_until_ready(eqx.filter_jit(lambda J: fdjax.couple(Y, B, J))(
+            np.zeros((1, 2, 2), complex)))
+    # compliant joints on the same rows pass under jit, equal to the eager result
+    J = np.diag([1e-7, 2e-7]).astype(complex)[None]
+    np.testing.assert_array_equal(np.asarray(eqx.filter_jit(fdjax.couple)(Y, B, J)),
+                                  np.asarray(fdjax.couple(Y, B, J)))
+    # both joints rigid at batch index 1 only (one rigid joint there would be accepted)
+    Js = np.stack([np.diag([1e-7, 2e-7]), np.zeros((2, 2)), np.diag([1e-7, 0.0])])
+    Js = Js.astype(complex)
+    Y3 = np.repeat(Y, 3, axis=0)
+    fdjax.couple(Y3, B, Js[[0, 2, 2]])
+    with pytest.raises(ValueError, match=pattern + r" .*got rank 1 for 2 rows at batch index 1"):
+        fdjax.couple(Y3, B, Js)
+    with pytest.raises(ValueError, match=r"`couple\(interface=\.\.\.\)` must have at least one "
+                                         r"row \(a joint\), got shape \(0, 3\)"):
+        fdjax.couple(Y, np.zeros((0, 3)))
+    # two grounded DOFs: B Y Bᵀ = 0, inputs all finite
+    with pytest.raises(ValueError, match=r"`couple\(receptance=\.\.\., interface=\.\.\., "
+                                         r"joint=\.\.\.\)` must be such that the interface "
+                                         r"bracket B·Y·Bᵀ \+ Y_j is invertible"):
+        fdjax.couple(np.diag([0.0, 0.0, 1e-6])[None] + 0j, np.array([[1.0, -1.0, 0.0]]))

@@ -70,6 +70,7 @@ class AbstractLoopModel(eqx.Module):
     """How the loop is modelled: its closed loop, its open loops, and (where it can) a run."""
 
     takes_frf: ClassVar[bool] = True  # open loops from a (measured) FRF array
+    bytes_per_sample: ClassVar[int] = 520  # memory a run holds at its peak per output sample
 
     @abc.abstractmethod
     def closed_loop(self, controller: AbstractController, plant: StateSpace,
@@ -150,6 +151,9 @@ class SampledData(AbstractLoopModel):
     filter_method: str = eqx.field(static=True, default="fitted")
     shared: SampledParts | None = None
     takes_frf: ClassVar[bool] = False
+    # measured on the reference drive (6 kept modes): 260–315 B between runs of 0.2 and 1.6
+    # million samples
+    bytes_per_sample: ClassVar[int] = 320
 
     def __check_init__(self):
         if self.filter_method not in FILTER_METHODS:
@@ -519,6 +523,9 @@ class PadeODE(AbstractLoopModel):
     stepsize_controller: diffrax.AbstractStepSizeController | None = None
     adjoint: diffrax.AbstractAdjoint | None = None
     max_steps: int | None = eqx.field(static=True, default=None)
+    # measured with the default solver on the reference drive (6 kept modes, dt 1.25e-4 s):
+    # 500 B per sample over a run of 1.44 million samples, 465 B per added sample
+    bytes_per_sample: ClassVar[int] = 520
 
     def __check_init__(self):
         if self.dt is not None:

@@ -35,10 +35,6 @@ from ._moving import MovingPlant
 
 __all__ = ["Simulation", "simulate", "SIMULATION_OUTPUTS"]
 
-# Memory a sampled-data run holds at its peak per output sample (bytes), measured on the reference
-# drive (6 kept modes): 260–315 B between runs of 0.2 and 1.6 million samples.
-_BYTES_PER_SAMPLE = 320
-
 SIMULATION_OUTPUTS = ("theta1", "x2", "x3", "T1")
 """Outputs of a closed loop and of a run: motor angle (rad), scale and tool positions (m),
 torque (N·m)."""
@@ -178,8 +174,9 @@ def simulate(
             drive's travel.
         duration: simulated time (s), static; default the reference's ``duration``.  At
             least one output period; the run covers it in whole output periods (rounded to
-            the nearest).  A run holds about 320 bytes per output sample; one that would not
-            fit in the memory available is refused before it starts.
+            the nearest).  A run holds about 320 bytes per output sample (520 with
+            :class:`fdjax.PadeODE`); one that would not fit in the memory available is
+            refused before it starts.
         disturbance: force F3 at the tool point (N) on the output grid, (n,); default 0.
         moving: moving-table mode (a drive plant; slower: the loop is rebuilt every step).
         twin: how a drive plant becomes its twin (:class:`fdjax.TwinOptions`: mesh, kept
@@ -242,7 +239,7 @@ def simulate(
     if duration < dt * (1 - 1e-9):  # a run of one sample (or PadeODE's of one output time)
         raise ValueError(f"`{fn}(duration=...)` must span at least one output period of "
                          f"{method.name} ({dt:.6g} s), got {duration:.6g} s")
-    need, avail = n * _BYTES_PER_SAMPLE, _memory.available_bytes()
+    need, avail = n * method.bytes_per_sample, _memory.available_bytes()
     if avail is not None and need > avail:
         raise ValueError(
             f"`{fn}(duration=...)`: {duration:.6g} s is {n} output samples (every "
