@@ -98,8 +98,12 @@ class Stability(eqx.Module):
     Attributes:
         stable: every closed-loop pole decays (Re s < 0; |z| < 1 for the sampled loop).
         growth_rate: max Re s over the poles (1/s), s = ln z / T for the sampled loop;
-            negative when stable.
-        min_damping: min over the poles of −Re s/|s| (the least damped pole's ratio).
+            negative when stable.  A pole at s = 0 (z = 1) to round-off, |s| ≤ 1e-9 of the
+            largest |s|, counts as s = 0 exactly (growth 0: marginally stable, not stable), by
+            both loop models alike: a state no feedback acts on, such as the table position of
+            a controller without a position loop.
+        min_damping: min over the poles of −Re s/|s| (the least damped pole's ratio; 0 for a
+            pole at s = 0).
         position_m: the table position (m).
         poles: the closed loop's eigenvalues (s, or z for the sampled loop), least stable first.
         result: ``RESULTS.successful`` or ``RESULTS.unstable``.
@@ -124,6 +128,13 @@ class Stability(eqx.Module):
         poles = np.asarray(self.poles).reshape(stable.shape[0], -1)
         lines = []
         for ok, p, gr, lam in zip(stable, pos, g, poles):
+            if gr == 0.0:
+                lines.append(
+                    f"closed loop marginally stable at table position {p:.4g} m: a pole at "
+                    f"{'z = 1' if self.discrete else 's = 0'} (0 Hz), a state no feedback acts "
+                    "on (such as the table position of a controller without a position loop)"
+                )
+                continue
             w = lam[0]
             hz = abs(np.angle(w)) / (2 * np.pi * self._period) if self.discrete else (
                 abs(w.imag) / (2 * np.pi)
@@ -218,8 +229,7 @@ def _entry(fn, controller, plant, servo, method, position_m, twin, *,
     """The checks every entry point makes: (controller, servo, method, kind, plant, scalar,
     frequency grid or None).  A traced controller's parameters are checked finite too (an
     ``eqx.error_if``: a NaN gain would read as infinite margins), except with ``traced=False``
-    (:func:`open_loop`, which the tuning objective evaluates at an optimiser's trial points,
-    whose non-finite values the tuners refuse themselves)."""
+    (the tuning objective's open loops, :func:`_open_loop`)."""
     controller = _check_controller(controller, fn, traced)
     servo, method = _check_servo(servo, fn), _check_method(method, fn)
     f = None if freq_hz is None else _grid(freq_hz, fn, min_points)
@@ -319,9 +329,17 @@ def open_loop(
         twin: how a drive plant becomes its twin (:class:`fdjax.TwinOptions`; default the
             modes below 4 kHz).
     """
+    return _open_loop(controller, plant, freq_hz, servo, method, position_m, screw_ratio, twin)
+
+
+def _open_loop(controller, plant, freq_hz, servo=Servo(), method=SampledData(), position_m=None,
+               screw_ratio=None, twin=None, *, traced=True) -> OpenLoop:
+    """:func:`open_loop`; with ``traced=False`` a traced controller's parameters are not
+    guarded finite: for the tuning objective, evaluated at an optimiser's trial points, whose
+    non-finite values the tuners refuse themselves."""
     controller, servo, method, kind, p, scalar, f = _entry(
         "open_loop", controller, plant, servo, method, position_m, twin,
-        freq_hz=freq_hz, screw_ratio=screw_ratio, traced=False,
+        freq_hz=freq_hz, screw_ratio=screw_ratio, traced=traced,
     )
     loops = _open_loop_jit(controller, kind, p, f, servo, method)
     return OpenLoop(freq_hz=f, **_squeeze(loops, scalar, kind))
@@ -536,11 +554,18 @@ def _stability_impl(controller, kind, p, servo, method):
         cl = method.closed_loop(controller, twin, servo)
         lam = jnp.linalg.eigvals(cl.A)
         s = method.poles_to_s(lam, servo)
-        order = jnp.argsort(-jnp.real(s))
-        lam, s = lam[order], s[order]
-        growth = jnp.real(s[0])
+        # a pole at s = 0 to round-off (z = 1 - 1e-14, or 0 exactly): one value for both loop
+        # models, not a verdict set by the last bit (Stability.growth_rate)
+        size = jnp.where(jnp.isfinite(s), jnp.abs(s), 0.0)  # z = 0 gives s = -inf
+        at_zero = size <= _MARGINAL_RTOL * jnp.max(size)
+        re = jnp.where(at_zero, 0.0, jnp.real(s))
+        order = jnp.argsort(-re)
+        lam, s, re, at_zero = lam[order], s[order], re[order], at_zero[order]
+        growth = re[0]
         stable = growth < 0
-        damping = jnp.min(jnp.where(jnp.isfinite(s), -jnp.real(s) / jnp.abs(s), jnp.inf))
+        ratio = jnp.where(at_zero, 0.0,
+                          -re / jnp.where(at_zero | ~jnp.isfinite(s), 1.0, jnp.abs(s)))
+        damping = jnp.min(jnp.where(jnp.isfinite(s), ratio, jnp.inf))
         return Stability(
             stable=stable,
             growth_rate=growth,
@@ -554,6 +579,11 @@ def _stability_impl(controller, kind, p, servo, method):
 
     return _map_twins(kind, p, one, has_eig=True)
 
+
+_MARGINAL_RTOL = 1e-9
+"""A pole within this fraction of the largest |s| of s = 0 is at s = 0: round-off puts the
+sampled loop's z = 1 at 1 − 1e-14 (s ≈ −1e-10 1/s against |s| up to ~1e5), while a loop's slow
+poles (an integrator's zero, ~1–10 1/s) lie far above it."""
 
 _stability_traced = eqx.debug.assert_max_traces(_stability_impl, max_traces=None)
 _stability_jit = eqx.filter_jit(_stability_traced)
@@ -579,7 +609,8 @@ def gain_headroom(
     fooled by conditionally stable loops or by several phase crossovers: g is found by a
     geometric scan (factor 1.25) and bisection in log g to ``rtol``, each step the eigenvalues of
     the closed loop.  g = 0 when the loop is unstable as it is, ``max_gain`` when it stays stable
-    up to there.  ``20·log10(g)`` is the gain headroom in dB.
+    up to there.  ``20·log10(g)`` is the gain headroom in dB.  A loop with a pole at s = 0 (a
+    controller without a position loop: marginally stable at every gain) is an error.
 
     Args: as :func:`check_stability`, and
         max_gain: the largest factor tried (> 1).
@@ -613,6 +644,13 @@ def gain_headroom(
 
     def one(p):
         if not stable(1.0, p):
+            st = check_stability(controller, plant, servo=servo, method=method, position_m=p,
+                                 twin=twin)
+            if bool(np.any(np.asarray(st.growth_rate) == 0.0)):
+                raise ValueError(
+                    f"`{fn}(controller=...)`: {st.message}; that pole stays at 0 at every gain, "
+                    "so the loop has no gain headroom (the speed loop's gain margin is "
+                    "loop_margins(...).speed)")
             return 0.0
         lo = 1.0
         while lo < max_gain:

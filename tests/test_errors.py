@@ -427,13 +427,14 @@ def test_a_controller_with_nan_parameters_is_named():
     with pytest.raises(eqx.EquinoxRuntimeError,  # what eqx.filter_jit raises
                        match=r"`simulate\(controller=\.\.\.\)` must have finite parameters"):
         jax.block_until_ready(run(bad))
-    # the margins and the stability verdict check it under jit too (they read a NaN gain as
-    # infinite margins, and as "unstable, growing at nan 1/s")
+    # the margins, the open loops and the stability verdict check it under jit too (they read
+    # a NaN gain as infinite margins, all-NaN loops, and "unstable, growing at nan 1/s")
     twin = fdjax.state_space(drive, 0.3, twin=fdjax.TwinOptions(kept_modes=4))
-    for fn in ("loop_margins", "check_stability"):
-        call = eqx.filter_jit(lambda c, fn=fn: (
-            fdjax.loop_margins(c, twin, f) if fn == "loop_margins"
-            else fdjax.check_stability(c, twin)))
+    jitted = {"loop_margins": lambda c: fdjax.loop_margins(c, twin, f),
+              "open_loop": lambda c: fdjax.open_loop(c, twin, f).speed,
+              "check_stability": lambda c: fdjax.check_stability(c, twin)}
+    for fn, body in jitted.items():
+        call = eqx.filter_jit(body)
         with pytest.raises(eqx.EquinoxRuntimeError,
                            match=rf"`{fn}\(controller=\.\.\.\)` must have finite parameters"):
             jax.block_until_ready(call(bad))

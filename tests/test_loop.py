@@ -482,6 +482,41 @@ def test_unstable_gain_is_reported_with_its_position(drive, frf):
         fdjax.check_stability(loop, drive, position_m=0.7, method=EXACT, throw=True)
 
 
+class _SpeedOnly(fdjax.AbstractController):
+    """u = −k_v v_m: a speed loop and nothing on the table position."""
+
+    kv: jax.Array
+
+    def law(self, position_m):
+        return fdjax.Law((fdjax.Path({"v_m": -self.kv}),))
+
+
+def test_a_loop_without_position_feedback_is_marginally_stable_by_both_models():
+    """Without a position loop the table position keeps a pole at s = 0: the sampled loop's
+    eigenvalue came out at z = 1 − 1.4e-14 (stable, decaying at 1.1e-10 1/s), the continuous
+    one's at s = 0 exactly (unstable, damping NaN).  Both now give growth 0, damping 0 and
+    'marginally stable'; the loop's other poles are all stable (the speed loop's gain margin is
+    2.5), and gain_headroom says it has none to measure.  The reference drive."""
+    drive = fdjax.reference_drive()
+    ctl = _SpeedOnly(jnp.asarray(150.0))
+    for method, pole in ((fdjax.SampledData(), "z = 1"), (fdjax.Continuous(), "s = 0")):
+        st = fdjax.check_stability(ctl, drive, position_m=0.4, method=method)
+        assert not bool(st.stable)
+        assert (float(st.growth_rate), float(st.min_damping)) == (0.0, 0.0)
+        assert st.message == ("closed loop marginally stable at table position 0.4 m: a pole at "
+                              f"{pole} (0 Hz), a state no feedback acts on (such as the table "
+                              "position of a controller without a position loop)")
+        # every other pole decays (the slowest at -20.2 and -27.8 1/s)
+        s = np.asarray(method.poles_to_s(st.poles[1:], fdjax.Servo()))
+        assert np.all(s.real[np.isfinite(s)] < -15.0)
+        with pytest.raises(ValueError, match=r"`gain_headroom\(controller=\.\.\.\)`: closed "
+                                             r"loop marginally stable .* no gain headroom"):
+            fdjax.gain_headroom(ctl, drive, position_m=0.4, method=method)
+    # a PID on the scale keeps its slow pole (-3.24 1/s) off s = 0: stable, as before
+    pid = fdjax.check_stability(PIDLoop(kp=1.5e3, ki=5.0e3, kd=100.0), drive, position_m=0.4)
+    assert bool(pid.stable) and float(pid.growth_rate) == pytest.approx(-3.239, rel=1e-3)
+
+
 def test_default_acceleration_feedforward_is_the_rigid_body_inertia():
     """k_ffa = J_eq/(k_motor i_sc), J_eq = rᵀMr for the rigid-body mode r of the FE model of
     the reference drive (the default's)."""

@@ -32,7 +32,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from .. import _checks
-from .._analysis import open_loop
+from .._analysis import _open_loop
 from .._checks import is_concrete
 from .._control._controllers import AbstractController
 from .._control._servo import Servo
@@ -187,7 +187,9 @@ class Objective(eqx.Module):
 
     def _penalty(self, controller, plant, method):
         """Σ over the break points of the smooth margin penalties (unweighted)."""
-        loops = open_loop(controller, plant, self.freq_hz, servo=self.servo, method=method)
+        # unguarded: the tuners refuse non-finite trial points themselves
+        loops = _open_loop(controller, plant, self.freq_hz, servo=self.servo, method=method,
+                           traced=False)
         # the break points' loops as one batch: one penalty program for all of them
         Ls = jnp.stack([L for L in (loops.plant_input, loops.speed, loops.position)
                         if L is not None])
