@@ -17,6 +17,8 @@ from matplotlib.colors import LogNorm  # noqa: E402
 
 from . import _checks  # noqa: E402
 from ._drive._model import INPUTS, OUTPUTS  # noqa: E402
+from ._results import RESULTS  # noqa: E402
+from ._simulation import Simulation  # noqa: E402
 
 __all__ = [
     "plot_three_mass_frf",
@@ -86,6 +88,24 @@ def _shaped(value, shape: tuple, where: str, names: str) -> np.ndarray:
     return arr
 
 
+def _response(value, shape: tuple, where: str, names: str) -> np.ndarray:
+    """A frequency response of exactly ``shape``: numbers, finite and, as it is drawn on a log
+    scale, non-zero (a NaN would be a gap in the curve, a zero −∞ dB)."""
+    arr = _shaped(np.asarray(_checks.numeric(value, where)), shape, where, names)
+    return _checks.check(arr, lambda v: np.isfinite(v) & (v != 0), where, "finite and non-zero")
+
+
+def _band(value, fn: str):
+    """An optional frequency band (f_lo, f_hi) in Hz, 0 < f_lo < f_hi."""
+    if value is None:
+        return None
+    band = _vector(value, f"{fn}(band_hz=...)", "a band (f_lo, f_hi) in Hz")
+    if band.size != 2 or not 0 < band[0] < band[1]:
+        raise ValueError(f"`{fn}(band_hz=...)` must be (f_lo, f_hi) in Hz with 0 < f_lo < f_hi, "
+                         f"got {_checks.fmt(band)}")
+    return band
+
+
 def plot_three_mass_frf(freq_hz, H, natural_hz=None):
     """Paper Fig. 2: magnitude and phase of h11, h21, h31 of the 3M2S system.
 
@@ -96,7 +116,7 @@ def plot_three_mass_frf(freq_hz, H, natural_hz=None):
     """
     fn = "plot_three_mass_frf"
     f = _frequencies(freq_hz, fn)
-    H = _shaped(H, (f.size, 3, 3), f"{fn}(H=...)", "(n_freq, 3, 3)")
+    H = _response(H, (f.size, 3, 3), f"{fn}(H=...)", "(n_freq, 3, 3)")
     if natural_hz is not None:
         natural_hz = _vector(natural_hz, f"{fn}(natural_hz=...)", "natural frequencies in Hz")
     fig, axes = plt.subplots(2, 3, figsize=(12, 5.5), sharex=True)
@@ -130,7 +150,12 @@ def plot_deflection_shapes(shapes, labels):
         labels: one title per shape, e.g. ``["rigid body", "103.7 Hz", "154.5 Hz"]``.
     """
     fn = "plot_deflection_shapes"
-    shapes = np.asarray(shapes, dtype=float)
+    shapes = np.asarray(_checks.numeric(shapes, f"{fn}(shapes=...)"))
+    if np.iscomplexobj(shapes):
+        raise ValueError(f"`{fn}(shapes=...)` must be real, got dtype {shapes.dtype}: a column "
+                         "of the receptance at a resonance draws as its imaginary part (.imag), "
+                         "below the first mode as its real part (.real)")
+    shapes = shapes.astype(float)
     if shapes.ndim != 2 or shapes.size == 0:
         raise ValueError(f"`{fn}(shapes=...)` must have shape (n_shapes, n_coordinates), got "
                          f"{shapes.shape}")
@@ -174,9 +199,13 @@ def plot_velocity_nyquist(freq_hz, h_collocated, h_noncollocated, *, labels=("v1
     """
     fn = "plot_velocity_nyquist"
     f = _frequencies(freq_hz, fn)
-    h_collocated = _shaped(h_collocated, f.shape, f"{fn}(h_collocated=...)", "(n_freq,)")
-    h_noncollocated = _shaped(h_noncollocated, f.shape, f"{fn}(h_noncollocated=...)",
-                              "(n_freq,)")
+    h_collocated = _response(h_collocated, f.shape, f"{fn}(h_collocated=...)", "(n_freq,)")
+    h_noncollocated = _response(h_noncollocated, f.shape, f"{fn}(h_noncollocated=...)",
+                                "(n_freq,)")
+    labels = list(labels) if not isinstance(labels, str) else [labels]
+    if len(labels) != 2:
+        raise ValueError(f"`{fn}(labels=...)` must hold two titles (collocated, "
+                         f"non-collocated), got {len(labels)}")
     iw = 2j * np.pi * f
     fig, axes = plt.subplots(1, 2, figsize=(10, 4.6))
     for ax, h, lab in zip(axes, (h_collocated, h_noncollocated), labels):
@@ -295,6 +324,9 @@ def plot_resonant_phase(position_m, frequency_hz, phase_deg, *, title="h21 = x2/
     if f.ndim != 2 or f.shape[0] != pos.size or f.shape[1] == 0:
         raise ValueError(f"`{fn}(frequency_hz=...)` must have shape (n_pos, n_modes) with "
                          f"n_pos = {pos.size}, got {np.shape(frequency_hz)}")
+    _checks.check(f, lambda v: np.isnan(v) | (np.isfinite(v) & (v > 0)),
+                  f"{fn}(frequency_hz=...)", "positive and finite (Hz; NaN marks a mode "
+                  "missing at a position)")
     ph = np.array(phase_deg, float)
     if ph.ndim == 1:
         ph = ph[None] if pos.size == 1 else ph[:, None]
@@ -359,9 +391,12 @@ def plot_peak_filter_effect(
     """
     fn = "plot_peak_filter_effect"
     f, pos = _frequencies(freq_hz, fn), _positions_m(position_m, fn)
-    Ls = [_shaped(np.atleast_2d(np.asarray(L)), (pos.size, f.size), f"{fn}({name}=...)",
-                  "(n_pos, n_freq)") for L, name in ((L_without, "L_without"),
-                                                     (L_with, "L_with"))]
+    Ls = [_response(np.atleast_2d(np.asarray(L)), (pos.size, f.size), f"{fn}({name}=...)",
+                    "(n_pos, n_freq)") for L, name in ((L_without, "L_without"),
+                                                       (L_with, "L_with"))]
+    radius = float(_checks.positive(_checks.real_scalar(radius, f"{fn}(radius=...)"),
+                                    f"{fn}(radius=...)"))
+    band_hz = _band(band_hz, fn)
     if not isinstance(filter_label, str) or not filter_label:
         raise ValueError(f"`{fn}(filter_label=...)` must be a non-empty string, got "
                          f"{filter_label!r}")
@@ -432,13 +467,27 @@ def plot_tracking(runs, *, title, tool=False):
     e3 = r − x3 dashed when ``tool``.
 
     Args:
-        runs: ``{label: Simulation}`` — results of :func:`fdjax.simulate` on the same reference.
+        runs: ``{label: Simulation}`` — results of :func:`fdjax.simulate` on the same reference,
+            one run each.  A run that failed is drawn up to where it stopped, its title in red
+            saying why (:attr:`fdjax.Simulation.message`), without an RMS.
         title: figure title (controller, position).
         tool: also draw the tool-point error.
     """
+    fn = "plot_tracking"
+    if not isinstance(runs, dict):
+        raise TypeError(f"`{fn}(runs=...)` must be a dict {{label: Simulation}}, got "
+                        f"{type(runs).__name__}")
     n = len(runs)
     if n == 0:
         raise ValueError("`plot_tracking(runs=...)` must hold at least one simulation")
+    for label, sim in runs.items():
+        if not isinstance(sim, Simulation):
+            raise TypeError(f"`{fn}(runs=...)` must map labels to fdjax.simulate's results, "
+                            f"got {type(sim).__name__} for {label!r}")
+        if np.ndim(sim.t) != 1:
+            raise ValueError(f"`{fn}(runs=...)` must hold one run per label, got a batch of "
+                             f"shape {np.shape(sim.t)[:-1]} for {label!r}: index it, e.g. "
+                             "jax.tree_util.tree_map(lambda x: x[i], runs)")
     fig, axes = plt.subplots(1 + n, 1, figsize=(10, 3.2 + 2.3 * n), sharex=True,
                              gridspec_kw=dict(height_ratios=[1.3] + [1.0] * n))
     ax_r = axes[0]
@@ -447,18 +496,25 @@ def plot_tracking(runs, *, title, tool=False):
     ax_r.plot(np.asarray(first.t), 1e3 * np.asarray(first.reference)[:, 0], color="k", lw=2.4,
               alpha=0.3, label="reference r")
     for ax_e, (label, sim), c in zip(axes[1:], runs.items(), colors):
-        t = np.asarray(sim.t)
-        e2 = np.asarray(sim.error_scale)
+        # a run stopped early (diverged, out of travel) is drawn up to where it stopped: its
+        # outputs are held after; a failed run's RMS is not a tracking error, its title says why
+        ok = bool(np.asarray(sim.result == RESULTS.successful))
+        k = min(int(np.asarray(sim.failed_at)) + 1, np.size(sim.t))
+        t = np.asarray(sim.t)[:k]
+        e2 = np.asarray(sim.error_scale)[:k]
         rms = float(np.sqrt(np.mean(np.square(e2))))
-        ax_r.plot(t, 1e3 * np.asarray(sim.x2), color=c, lw=1.0, label=f"{label}: $x_2$")
+        ax_r.plot(t, 1e3 * np.asarray(sim.x2)[:k], color=c, lw=1.0, label=f"{label}: $x_2$")
         ax_e.plot(t, 1e6 * e2, color=c, lw=1.0,
-                  label=f"$e_2 = r - x_2$, RMS {rms * 1e6:.3g} µm")
+                  label=f"$e_2 = r - x_2$, RMS {rms * 1e6:.3g} µm" if ok else "$e_2 = r - x_2$")
         if tool:
-            ax_e.plot(t, 1e6 * np.asarray(sim.error_tool), color=c, lw=0.8, ls="--",
+            ax_e.plot(t, 1e6 * np.asarray(sim.error_tool)[:k], color=c, lw=0.8, ls="--",
                       label="$e_3 = r - x_3$")
         ax_e.axhline(0, color="k", lw=0.6)
         ax_e.set_ylabel("error (µm)")
-        ax_e.set_title(label, fontsize=9, loc="left")
+        if ok:
+            ax_e.set_title(label, fontsize=9, loc="left")
+        else:
+            ax_e.set_title(f"{label}: {sim.message}", fontsize=9, loc="left", color="C3")
         ax_e.legend(fontsize=8, loc="upper right")
     ax_r.set_ylabel("position (mm)")
     ax_r.legend(fontsize=8, loc="upper right")
@@ -549,8 +605,14 @@ def plot_rms_over_travel(positions_mm, results, *, labels=None, design_mm=(),
             if len(r[key]) != y.size:
                 raise ValueError(f"`{fn}(results=...)` must give one {key!r} per position "
                                  f"({y.size}), got {len(r[key])} for {name!r}")
-    design_mm = _vector(design_mm, f"{fn}(design_mm=...)", "positions in mm") if len(
-        design_mm) else ()
+        if np.asarray(r["stable"]).dtype != bool:
+            raise ValueError(f"`{fn}(results=...)` must give 'stable' as booleans, got "
+                             f"{np.asarray(r['stable']).dtype} for {name!r}")
+        rms = np.asarray([np.nan if v is None else v for v in r["rms_error_um"]], float)
+        _checks.check(rms, lambda v: np.isnan(v) | (np.isfinite(v) & (v >= 0)),
+                      f"{fn}(results=...)[{name!r}]['rms_error_um']",
+                      "finite and non-negative (µm; None or NaN where unstable)")
+    design_mm = _positions_mm(design_mm, fn, "design_mm") if len(design_mm) else ()
     fig, (ax, ax_m) = plt.subplots(2, 1, figsize=(10, 7.5), sharex=True,
                                    gridspec_kw=dict(height_ratios=[2.0, 1.0]))
     colors = plt.cm.tab10(np.arange(len(results)))
