@@ -16,8 +16,9 @@ from ._linalg import entries, inv_entries, small_inv
 __all__ = ["LumpedModel", "chain_model", "three_mass"]
 
 _SYMMETRY_RTOL = 1e-12
-"""Largest |A − Aᵀ| accepted, relative to |A|'s entries: assembled matrices are symmetric to
-round-off (a few ulps)."""
+"""Largest max|A − Aᵀ| accepted, relative to max|A|: assembled or transformed matrices (TᵀMT)
+are symmetric to round-off, a few ulps of their largest entry (not of each entry: a small
+off-diagonal entry of a transformed matrix can differ from its mirror by 3e-12 of itself)."""
 
 _PSD_RTOL = 1e-9
 """Most negative eigenvalue of K or C accepted, relative to the largest |eigenvalue|: a free
@@ -75,7 +76,7 @@ class LumpedModel(eqx.Module):
             if not _checks.is_concrete(a):
                 continue  # checked where it is used (frf, modes) under jit
             a = np.asarray(a)
-            if not np.allclose(a, a.T, rtol=_SYMMETRY_RTOL, atol=0):
+            if np.max(np.abs(a - a.T)) > _SYMMETRY_RTOL * np.max(np.abs(a)):
                 raise ValueError(
                     f"`LumpedModel({name}=...)` must be symmetric (a reciprocal structure), "
                     f"got max |A − Aᵀ| = {np.max(np.abs(a - a.T)):.3g}"
@@ -120,8 +121,9 @@ class LumpedModel(eqx.Module):
         freq_hz = _checks.frequency_grid(freq_hz, "LumpedModel.frf(freq_hz=...)")
         model = self
         # traced matrices (checked where concrete, in __check_init__): the mirrored upper
-        # triangle below is the receptance of a symmetric model only
-        model = _symmetric(self, ("mass", "stiffness", "damping"))
+        # triangle below is the receptance of a symmetric model only, and of a passive one
+        # only where M is positive definite and K, C positive semi-definite
+        model = _checked(self, ("mass", "stiffness", "damping"))
         upper, finite = _frf_upper(model, freq_hz)
         H = _mirror(upper, self.size)
         if _checks.is_concrete(finite):
@@ -143,7 +145,7 @@ class LumpedModel(eqx.Module):
         """
         # cholesky reads M's lower triangle and eigh symmetrises: traced matrices that are not
         # symmetric (checked where concrete, in __check_init__) would give wrong modes
-        model = _symmetric(self, ("mass", "stiffness"))
+        model = _checked(self, ("mass", "stiffness"), definite=False)
         L = jnp.linalg.cholesky(model.mass)
         # NaN where M is not positive definite: refused at construction where M is concrete,
         # here where it is traced
@@ -161,16 +163,27 @@ class LumpedModel(eqx.Module):
         return omega / (2 * jnp.pi), shapes
 
 
-def _symmetric(model: LumpedModel, names) -> LumpedModel:
-    """``model`` with the traced matrices among ``names`` guarded to be symmetric (to
-    :data:`_SYMMETRY_RTOL`); concrete ones were checked at construction."""
+def _checked(model: LumpedModel, names, definite: bool = True) -> LumpedModel:
+    """``model`` with the traced matrices among ``names`` guarded as the constructor checks
+    concrete ones: symmetric (to :data:`_SYMMETRY_RTOL`) and, with ``definite``, M positive
+    definite and K, C positive semi-definite (to :data:`_PSD_RTOL`; ``modes`` checks these
+    from its own factorisations)."""
     for name in names:
         a = getattr(model, name)
         if _checks.is_concrete(a):
             continue
-        bad = jnp.max(jnp.abs(a - a.T)) > _SYMMETRY_RTOL * jnp.max(jnp.abs(a))
-        model = eqx.tree_at(lambda m, name=name: getattr(m, name), model, eqx.error_if(
-            a, bad, f"`LumpedModel({name}=...)` must be symmetric (a reciprocal structure)"))
+        a = eqx.error_if(a, jnp.max(jnp.abs(a - a.T)) > _SYMMETRY_RTOL * jnp.max(jnp.abs(a)),
+                         f"`LumpedModel({name}=...)` must be symmetric (a reciprocal structure)")
+        if definite:
+            eig = jnp.linalg.eigvalsh(0.5 * (a + a.T))
+            if name == "mass":
+                a = eqx.error_if(a, jnp.any(eig <= 0),
+                                 "`LumpedModel(mass=...)` must be positive definite")
+            else:
+                a = eqx.error_if(a, jnp.any(eig < -_PSD_RTOL * jnp.max(jnp.abs(eig))),
+                                 f"`LumpedModel({name}=...)` must be positive semi-definite (a "
+                                 "passive structure)")
+        model = eqx.tree_at(lambda m, name=name: getattr(m, name), model, a)
     return model
 
 

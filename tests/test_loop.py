@@ -512,9 +512,16 @@ def test_a_loop_without_position_feedback_is_marginally_stable_by_both_models():
         with pytest.raises(ValueError, match=r"`gain_headroom\(controller=\.\.\.\)`: closed "
                                              r"loop marginally stable .* no gain headroom"):
             fdjax.gain_headroom(ctl, drive, position_m=0.4, method=method)
-    # a PID on the scale keeps its slow pole (-3.24 1/s) off s = 0: stable, as before
+    # a PID on the scale keeps its slow pole (-3.24 1/s) off s = 0: stable, as before; with a
+    # five-thousandth of that integral gain its slowest pole is at -6.67e-4 1/s, stable by both
+    # models alike (a threshold relative to the largest |s| had called the sampled one
+    # marginal: a dead-beat pole's s = ln(1e-300)/T set the scale)
     pid = fdjax.check_stability(PIDLoop(kp=1.5e3, ki=5.0e3, kd=100.0), drive, position_m=0.4)
     assert bool(pid.stable) and float(pid.growth_rate) == pytest.approx(-3.239, rel=1e-3)
+    for method in (fdjax.SampledData(), fdjax.Continuous()):
+        slow = fdjax.check_stability(PIDLoop(ki=1.0), drive, position_m=0.4, method=method)
+        assert bool(slow.stable), method
+        assert float(slow.growth_rate) == pytest.approx(-6.67e-4, rel=2e-3), method
 
 
 def test_default_acceleration_feedforward_is_the_rigid_body_inertia():

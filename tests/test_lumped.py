@@ -163,7 +163,7 @@ def test_symmetry_and_passivity_are_checked_eagerly_and_under_jit():
     cases = [  # (M, K, C, the matrix named)
         (np.array([[1.0, 0.5], [0.0, 1.0]]), K, 0.01 * K, "mass"),
         (eye, np.array([[2e4, -1e4], [-3e4, 3e4]]), 0.01 * K, "stiffness"),
-        (eye + 9e-6 * np.array([[0.0, 1.0], [0.0, 0.0]]), K, 0.01 * K, "mass"),  # rtol 1e-12
+        (eye + 9e-6 * np.array([[0.0, 1.0], [0.0, 0.0]]), K, 0.01 * K, "mass"),  # 1e-12 max|M|
     ]
     for M, Kb, C, name in cases:
         with pytest.raises(ValueError, match=rf"`LumpedModel\({name}=\.\.\.\)` must be "
@@ -187,6 +187,22 @@ def test_symmetry_and_passivity_are_checked_eagerly_and_under_jit():
                                            r"positive semi-definite stiffness matrix"):
         jax.block_until_ready(eqx.filter_jit(lambda k: LumpedModel(eye, k, 0 * k).modes())(
             np.diag([1e4, -1e4])))
+    # and the FRF under jit (it returned finite receptances of these models)
+    frf = eqx.filter_jit(lambda m, k, c: LumpedModel(m, k, c).frf(f))
+    for args, pattern in (((eye, K, -eye), r"`LumpedModel\(damping=\.\.\.\)` must be positive "
+                                           r"semi-definite"),
+                          ((eye, np.diag([1e4, -1e4]), 0 * eye),
+                           r"`LumpedModel\(stiffness=\.\.\.\)` must be positive semi-definite"),
+                          ((np.diag([1.0, -1.0]), K, 0 * eye),
+                           r"`LumpedModel\(mass=\.\.\.\)` must be positive definite")):
+        with pytest.raises(CHECK_FAILED, match=pattern):
+            jax.block_until_ready(frf(*args))
+    # symmetry is judged against the largest entry: a transformed matrix whose small
+    # off-diagonal entry differs from its mirror by 1e-11 of itself (1e-14 absolute) is
+    # accepted, eagerly as under jit
+    M = np.array([[2.0, 1e-3 * (1 + 1e-11)], [1e-3, 2.0]])
+    np.testing.assert_allclose(frf(M, K, 0.01 * K), LumpedModel(M, K, 0.01 * K).frf(f),
+                               rtol=1e-13)
     # the free chain's rigid-body eigenvalue (round-off either side of 0) stays accepted
     assert float(fdjax.three_mass().modes()[0][0]) == 0.0
     np.testing.assert_allclose(eqx.filter_jit(lambda k: LumpedModel(eye, k, 0 * k).modes()[0])(K),

@@ -38,3 +38,9 @@ def test_a_run_is_refused_by_what_its_method_holds_per_sample(monkeypatch):
         with pytest.raises(ValueError, match=rf"`simulate\(duration=\.\.\.\)`: 1 s is {n} output "
                                              r"samples .* GiB of memory available"):
             fdjax.simulate(loop, drive, ref, method, position_m=0.3, duration=1.0)
+    # the sampled loop's run passes the memory check at 400 B per sample, and stops at the next
+    # check (a twin that is not TwinOptions), before anything runs
+    monkeypatch.setattr(_memory, "available_bytes", lambda: 400 * n)
+    with pytest.raises(TypeError, match=r"`simulate\(twin=\.\.\.\)`"):
+        fdjax.simulate(loop, drive, ref, fdjax.SampledData(), position_m=0.3, duration=1.0,
+                       twin="none")
