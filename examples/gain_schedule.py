@@ -40,7 +40,7 @@ import numpy as np
 import optax
 
 import fdjax
-from fdjax._control._reference import reference_servo
+from fdjax import reference_servo
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from screw_end_design import THETA, sharp_objective  # noqa: E402

@@ -31,7 +31,7 @@ import numpy as np
 import optax
 
 import fdjax
-from fdjax._control._reference import reference_pid, reference_servo
+from fdjax import reference_pid, reference_servo
 
 ROBUST_M = np.linspace(0.1, 0.7, 13)          # where the robust PID is tuned (as synthesise)
 POSITIONS_M = np.r_[0.1, 0.115, np.linspace(0.15, 0.7, 12)]   # where every design is evaluated

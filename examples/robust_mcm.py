@@ -55,16 +55,19 @@ import time
 
 import jax
 import numpy as np
+import optax
 
 import fdjax
-from fdjax._control._reference import reference_servo
-from fdjax._tune._optimisers import default_optimiser
-from fdjax._tune._synthesis import DESIGN_POSITIONS_M
+from fdjax import reference_servo
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from screw_end_design import THETA  # noqa: E402
 
+DESIGN_POSITIONS_M = np.linspace(0.1, 0.7, 6)  # the six local designs' positions
 ROBUST_POSITIONS_M = np.linspace(0.1, 0.7, 13)
+# one optimiser object for every tuning: a compiled step is keyed on it (same object, no
+# recompilation)
+LBFGS = optax.lbfgs()
 FIG18_POSITIONS_M = np.linspace(0.1, 0.7, 61)
 
 
@@ -88,7 +91,7 @@ def from_reference(par, obj, drive, servo):
         print(f"  {y * 1e3:.0f} mm: modulus margin {r['modulus_margin'][i]:.3f}, gain margin "
               f"{r['gain_margin_db'][i]:.2f} dB, phase margin {r['phase_margin_deg'][i]:.1f}°")
     t = fdjax.tune_local(par, obj, drive, [0.115], par.from_controller(ref), steps=150,
-                         optimiser=default_optimiser("lbfgs"), chunk=10)
+                         optimiser=LBFGS, chunk=10)
     c = par.to_controller(t.best_theta[0])
     r = fdjax.evaluate({"c": c}, drive, [0.115], servo=servo, progress=False)["c"]
     print(f"tuned at 115 mm from it (150 L-BFGS steps, feedback only): {r['rms_error_um'][0]:.2f} "
@@ -116,7 +119,7 @@ def main(argv=None):
     name = "robust, from the screw-end design"
     t0 = time.perf_counter()
     r = fdjax.tune_robust(par, obj, drive, ROBUST_POSITIONS_M, np.asarray(THETA),
-                          steps=args.steps, optimiser=default_optimiser("lbfgs"), chunk=10)
+                          steps=args.steps, optimiser=LBFGS, chunk=10)
     c = par.to_controller(r.best_theta)
     print(f"{name}: J {float(np.min(r.history)):.4f} after {args.steps} steps "
           f"({time.perf_counter() - t0:.0f} s)\n  {describe(c)}", flush=True)
@@ -126,14 +129,14 @@ def main(argv=None):
         th = par.from_controller(c)
         design = np.asarray(DESIGN_POSITIONS_M)
         shared = fdjax.tune_shared_gains(par, obj, drive, design, th, steps=100,
-                                         optimiser=default_optimiser("lbfgs"), chunk=10)
+                                         optimiser=LBFGS, chunk=10)
         loop = par.to_controller(shared.best_theta[0])
         net0 = fdjax.ATANetwork(drive.travel_m, width=8, key=jax.random.PRNGKey(0))
         net, _ = fdjax.fit_network(net0, design, shared.best_theta[:, 5:], steps=4000)
         bp = fdjax.ScheduledLoop(loop, net, bounds)
         e2e, rec = fdjax.train_schedule(bp, obj, drive, steps=60,
                                       positions_m=np.linspace(*drive.travel_m, 13),
-                                      train_gains=True, optimiser=default_optimiser("lbfgs"),
+                                      train_gains=True, optimiser=LBFGS,
                                       chunk=10)
         print(f"end to end: training objective {float(rec.history[0]):.4f} -> "
               f"{float(np.min(rec.history)):.4f}", flush=True)

@@ -40,7 +40,7 @@ import math
 import numpy as np
 
 import fdjax
-from fdjax._control._reference import reference_servo
+from fdjax import reference_servo
 
 THETA = [0.8237570863265421, -2.033553334826528, -0.8533367494349249, 4.01335855060909,
          2.176487103106046, 19.33179408657672, 0.5539018743676887, -0.010639035313014689,

@@ -302,12 +302,13 @@ def tune_newton(
     positions).  On the 12-parameter local problem it reaches lower objectives than
     first-order steps, and than the adaptive simplex given 1500 evaluations per position;
     with ``hessian_every=8`` in less wall time than the simplex compiled as this tuner is
-    (:func:`fdjax.tune_simplex`, 1.1–1.4× over the runs), with the exact Hessian at every
+    (:func:`fdjax.tune_simplex`, 1.1–1.7× over the runs), with the exact Hessian at every
     step in more (``benchmarks/tuning.py``); it stops in the minimum its trust region leads to, and
-    a simplex run for 8× longer ends lower at four of six positions
+    a simplex run for 8× longer ends lower at five of six positions
     (``benchmarks/tuning_converged.py``).  In ``benchmarks/tuning_variants.py`` an initial
     ``radius`` of 3 reached the simplex's best as well in about as many steps (1 missed one
-    position), ``hessian_every`` = 20 missed two positions and "the start only" three, and
+    position), ``hessian_every`` = 20 reached it too, at one position only with its last
+    step, "the start only" missed it at three positions, and
     ``hessian="margins"`` took 10× fewer simulations than the simplex but saved less time than
     the exact Hessian.  For many parameters (a network) use
     :func:`fdjax.train_schedule`.  The Hessian is exact for the tracking error and the margin
