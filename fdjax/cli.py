@@ -440,8 +440,9 @@ def control_report(out: str, controllers: dict, *, certify_step_mm: float | None
             "feedforward": False, **(metadata or {})}
     fdjax.save_designs(out, controllers, metadata=meta)
     fdjax.save_schedule(os.path.join(out, "schedule.eqx"), controllers["mcm_ata_e2e"],
-                        metadata={**meta, "trained": "end to end"})
+                        drive=drive, metadata={**meta, "trained": "end to end"})
     fdjax.save_schedule(os.path.join(out, "schedule_bp.eqx"), controllers["mcm_ata"],
+                        drive=drive,
                         metadata={**meta, "trained": "backpropagation on the local designs"})
     y = np.asarray(FIG18_POSITIONS_M)
     table = controllers["mcm_ata_e2e"].filter_table(y)

@@ -173,6 +173,60 @@ def test_save_and_load_are_bit_exact(tmp_path):
         fdjax.load_schedule(path)
 
 
+def test_a_file_must_be_the_schedule_its_json_describes_for_the_drive_given(tmp_path):
+    """Leaves of another schedule, or of a larger tree (the designs file), with trailing bytes,
+    or gains the JSON does not hold, had loaded as the JSON's schedule (kp 328.9 where the JSON
+    said 337.4); a drive recorded on saving is checked on loading; bounds given as NumPy
+    scalars are stored as Python floats (saving had blamed them on `metadata`)."""
+    drive = fdjax.reference_drive()
+    net = fdjax.ATANetwork((0.1, 0.7), width=3, key=jax.random.PRNGKey(5))
+    bounds = fdjax.MCMBounds(period=np.float32(1.25e-4), freq_hz=(np.float64(20.0), 3000.0))
+    sched = fdjax.ScheduledLoop(fdjax.DoubleLoop(), net, bounds)
+    one, two = tmp_path / "one.eqx", tmp_path / "two.eqx"
+    fdjax.save_schedule(one, sched, drive=drive)
+    meta = json.loads((tmp_path / "one.json").read_text())
+    assert meta["drive"]["type"] == "BallScrewDrive" and len(meta["drive"]["sha256"]) == 64
+    assert meta["bounds"]["period_s"] == float(np.float32(1.25e-4))
+    assert type(bounds.period) is float and type(bounds.freq_hz[0]) is float
+    assert bool(eqx.tree_equal(fdjax.load_schedule(one, drive=drive), sched))
+    stiffer = eqx.tree_at(lambda d: d.nut.stiffness, drive, drive.nut.stiffness * 1.01)
+    with pytest.raises(ValueError, match=r"`load_schedule\(drive=\.\.\.\)`: .*one\.json' was "
+                                         r"tuned for another drive \(BallScrewDrive, travel"):
+        fdjax.load_schedule(one, drive=stiffer)
+    fdjax.save_schedule(two, eqx.tree_at(lambda s: s.loop.log_kp, sched,
+                                         sched.loop.log_kp + 0.1))
+    with pytest.raises(ValueError, match=r"records no drive to compare with"):
+        fdjax.load_schedule(two, drive=drive)
+    # the leaves of the other schedule under this one's JSON
+    (tmp_path / "mixed.eqx").write_bytes(two.read_bytes())
+    (tmp_path / "mixed.json").write_text((tmp_path / "one.json").read_text())
+    with pytest.raises(ValueError, match=r"mixed\.eqx' does not hold the leaves its JSON "
+                                         r"describes: gains .* \(the leaves of another schedule"):
+        fdjax.load_schedule(tmp_path / "mixed.eqx")
+    # trailing bytes: the leaves of something larger
+    (tmp_path / "mixed.eqx").write_bytes(one.read_bytes() + bytes(64))
+    with pytest.raises(ValueError, match=r"written for something else: 64 bytes left over"):
+        fdjax.load_schedule(tmp_path / "mixed.eqx")
+    # a network the JSON says fdjax does not build
+    meta["network"]["depth"] = 3
+    (tmp_path / "mixed.eqx").write_bytes(one.read_bytes())
+    (tmp_path / "mixed.json").write_text(json.dumps(meta))
+    with pytest.raises(ValueError, match=r"does not describe an fdjax schedule \(ValueError: a "
+                                         r"network of depth 3"):
+        fdjax.load_schedule(tmp_path / "mixed.eqx")
+    # positions of the wrong shape are named
+    with pytest.raises(ValueError, match=r"`ScheduledLoop\.controller\(position_m=\.\.\.\)` must "
+                                         r"be one table position \(a scalar"):
+        sched.controller(jnp.array([0.2, 0.3]))
+    with pytest.raises(ValueError, match=r"`ScheduledLoop\.fixed_at\(positions_m=\.\.\.\)` must "
+                                         r"be a 1-D array of at least one position, got shape "
+                                         r"\(\)"):
+        sched.fixed_at(0.2)
+    with pytest.raises(ValueError, match=r"`ScheduledLoop\.filter_table\(positions_m=\.\.\.\)` "
+                                         r"must be 1-D with at least one position"):
+        sched.filter_table([])
+
+
 def test_filter_table_is_the_schedule_in_drive_units():
     net = fdjax.ATANetwork((0.1, 0.7), width=4, key=jax.random.PRNGKey(4))
     sched = fdjax.ScheduledLoop(fdjax.DoubleLoop(), net, BOUNDS)

@@ -261,6 +261,16 @@ def test_certify_is_loop_margins_and_stability_at_each_position():
     assert (f"unstable at {unstable.size} positions, from {unstable[0]:.0f} mm to "
             f"{unstable[-1]:.0f} mm") in backwards.message
     assert bad.worst("modulus_margin")[0] == 0.7
+    # with several unstable positions the worst is the most unstable, in any order (the first
+    # unstable one in the positions' order had been named: growth 1 of [1, 60, 5] 1/s)
+    n = bad.positions_m.size
+    growth = np.linspace(1.0, 5.0, n)
+    growth[n // 2] = 60.0
+    many = eqx.tree_at(lambda c: (c.stable, c.growth_rate), bad, (np.zeros(n, bool), growth))
+    for many in (many, jax.tree_util.tree_map(lambda a: a[::-1], many)):
+        assert many.worst("gain_margin_db")[0] == bad.positions_m[n // 2]
+        assert (f"most at {bad.positions_m[n // 2] * 1e3:.0f} mm (growing at 60 1/s)"
+                in many.message), many.message
     # the message's least margins are those of the stable positions (an unstable loop's
     # margins mean nothing)
     y_s, v_s = bad.worst("modulus_margin", stable_only=True)

@@ -76,8 +76,9 @@ class Certificate(eqx.Module):
     def worst(self, what: str = "modulus_margin", *,
               stable_only: bool = False) -> tuple[float, float]:
         """(position (m), value) where ``what`` (a margin) is least; an unstable position
-        counts as the least of all, or with ``stable_only`` is left out (the margins of an
-        unstable loop mean nothing; NaN where no position is stable)."""
+        counts as the least of all (the most unstable one, by its growth rate, first), or with
+        ``stable_only`` is left out (the margins of an unstable loop mean nothing; NaN where no
+        position is stable)."""
         if what not in ("gain_margin_db", "phase_margin_deg", "modulus_margin"):
             raise ValueError("`Certificate.worst(what=...)` must be 'gain_margin_db', "
                              f"'phase_margin_deg' or 'modulus_margin', got {what!r}")
@@ -86,8 +87,10 @@ class Certificate(eqx.Module):
             if not np.any(self.stable):
                 return math.nan, math.nan
             v = np.where(self.stable, v, np.inf)
-        else:
-            v = np.where(self.stable, v, -np.inf)
+        elif not np.all(self.stable):  # the most unstable position
+            g = np.where(self.stable, -np.inf, np.asarray(self.growth_rate, float))
+            k = int(np.argmax(g))
+            return float(self.positions_m[k]), float(np.asarray(getattr(self, what))[k])
         k = int(np.argmin(v))
         return float(self.positions_m[k]), float(np.asarray(getattr(self, what))[k])
 
@@ -103,8 +106,11 @@ class Certificate(eqx.Module):
         parts = [head]
         if not np.all(self.stable):
             bad = np.sort(y[~self.stable])
+            g = np.asarray(self.growth_rate, float)
+            k = int(np.argmax(np.where(self.stable, -np.inf, g)))
             parts.append(f"unstable at {bad.size} positions, from {bad[0] * 1e3:.0f} mm to "
-                         f"{bad[-1] * 1e3:.0f} mm")
+                         f"{bad[-1] * 1e3:.0f} mm, most at {y[k] * 1e3:.0f} mm (growing at "
+                         f"{g[k]:.4g} 1/s)")
         if self.low_gain is not None and not np.all(self.low_gain > 1):
             low = np.sort(y[~(self.low_gain > 1)])
             parts.append(f"the loop gain at the grid's lowest frequency is not above 1 at "

@@ -25,6 +25,8 @@ its hyperparameters and units (the path with suffix ``.json``).
 from __future__ import annotations
 
 import abc
+import hashlib
+import io
 import json
 import math
 import os
@@ -39,7 +41,7 @@ from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
 from .. import _checks
 from .._control._controllers import AbstractController, DoubleLoop, Law
-from .._drive._model import travel_pair
+from .._drive._model import BallScrewDrive, travel_pair
 from .._filters import MCM
 from ._optimisers import optimiser_or
 from ._parameterisation import LOG_GAIN_LIMIT, MCM_PARAMETERS, MCMBounds
@@ -159,7 +161,12 @@ class _ScheduledDoubleLoop(AbstractController):
     def fixed_at(self, positions_m: Float[ArrayLike, " n"]) -> DoubleLoop:
         """The double loops run at ``positions_m`` (m), stacked
         (:meth:`AbstractController.fixed_at`)."""
-        return jax.vmap(self.controller)(jnp.asarray(positions_m, jnp.float64))
+        where = f"{type(self).__name__}.fixed_at(positions_m=...)"
+        y = _checks.real_array(positions_m, where)
+        if y.ndim != 1 or y.size == 0:
+            raise ValueError(f"`{where}` must be a 1-D array of at least one position, got "
+                             f"shape {y.shape}")
+        return jax.vmap(self.controller)(y)
 
 
 class ScheduledLoop(_ScheduledDoubleLoop):
@@ -204,8 +211,13 @@ class ScheduledLoop(_ScheduledDoubleLoop):
     def controller(self, position_m: Float[ArrayLike, ""]) -> DoubleLoop:
         """The fixed double loop the schedule runs at table position Y (m), inside the travel
         the network was built for (a network does not extrapolate)."""
-        position_m = self._in_travel(position_m, "ScheduledLoop.controller(position_m=...)")
-        return _scheduled(self.loop, self.network, self.bounds, position_m)
+        where = "ScheduledLoop.controller(position_m=...)"
+        position_m = _checks.real_array(position_m, where)
+        if position_m.ndim != 0:
+            raise ValueError(f"`{where}` must be one table position (a scalar; fixed_at or "
+                             f"jax.vmap over positions), got shape {position_m.shape}")
+        return _scheduled(self.loop, self.network, self.bounds,
+                          self._in_travel(position_m, where))
 
     def filter_table(self, positions_m: Float[ArrayLike, " n"]) -> dict[str, list[float]]:
         """The scheduled filters at ``positions_m`` (m), one row per position, in the units a
@@ -216,9 +228,9 @@ class ScheduledLoop(_ScheduledDoubleLoop):
         CSV or a JSON table."""
         y = jnp.atleast_1d(_checks.real_array(positions_m,
                                               "ScheduledLoop.filter_table(positions_m=...)"))
-        if y.ndim != 1:
-            raise ValueError(f"`ScheduledLoop.filter_table(positions_m=...)` must be 1-D, got "
-                             f"shape {y.shape}")
+        if y.ndim != 1 or y.size == 0:
+            raise ValueError(f"`ScheduledLoop.filter_table(positions_m=...)` must be 1-D with "
+                             f"at least one position, got shape {y.shape}")
         y = self._in_travel(y, "ScheduledLoop.filter_table(positions_m=...)")
         loops = jax.vmap(self.controller)(y)
         pk, nt = loops.mcm.peak, loops.mcm.notch
@@ -416,7 +428,34 @@ def bounds_from_json(b: dict) -> MCMBounds:
                      notch_depth_min=b["notch_depth_min"])
 
 
-def _hyperparameters(schedule: ScheduledLoop, extra: dict | None) -> dict:
+def drive_fingerprint(drive) -> dict:
+    """What identifies the drive a design was tuned for: its type, travel (m) and the SHA-256 of
+    its parameters (its leaves, as ``eqx.tree_serialise_leaves`` writes them) and structure."""
+    buf = io.BytesIO()
+    eqx.tree_serialise_leaves(buf, drive)
+    digest = hashlib.sha256(buf.getvalue())
+    digest.update(str(jax.tree_util.tree_structure(drive)).encode())
+    return {"type": type(drive).__name__, "travel_m": [float(v) for v in drive.travel_m],
+            "sha256": digest.hexdigest()}
+
+
+def check_drive(meta: dict, drive, where: str, path: str) -> None:
+    """``drive`` against the fingerprint in ``meta`` (a ``ValueError`` naming ``where`` when
+    they differ; nothing to check when the file records no drive)."""
+    if drive is None:
+        return
+    _checks.instance(drive, BallScrewDrive, where.replace("path", "drive"))
+    saved = meta.get("drive")
+    if not isinstance(saved, dict) or "sha256" not in saved:
+        raise ValueError(f"`{where.replace('path', 'drive')}`: {path!r} records no drive to "
+                         "compare with (saved without drive=...); load it without drive=")
+    if drive_fingerprint(drive)["sha256"] != saved["sha256"]:
+        raise ValueError(f"`{where.replace('path', 'drive')}`: {path!r} was tuned for another "
+                         f"drive ({saved.get('type')}, travel {saved.get('travel_m')} m, "
+                         "other parameters)")
+
+
+def _hyperparameters(schedule: ScheduledLoop, extra: dict | None, drive=None) -> dict:
     b = schedule.bounds
     return {
         "format": _FORMAT,
@@ -430,6 +469,7 @@ def _hyperparameters(schedule: ScheduledLoop, extra: dict | None) -> dict:
         "gains": {k: float(getattr(schedule.loop, k))
                   for k in ("kp", "kv", "ki", "k_ffv", "k_ffa")},
         "metadata": dict(extra or {}),
+        **({} if drive is None else {"drive": drive_fingerprint(drive)}),
     }
 
 
@@ -447,19 +487,22 @@ def _schedule_path(fn, path):
 
 
 def save_schedule(path: str | os.PathLike, schedule: ScheduledLoop, *,
-                  metadata: dict | None = None) -> None:
+                  drive: BallScrewDrive | None = None, metadata: dict | None = None) -> None:
     """Write ``schedule`` to ``path`` (its leaves, ``eqx.tree_serialise_leaves``) and its
-    hyperparameters, units and ``metadata`` (e.g. the drive it was tuned for) to the JSON file
-    beside it (``path`` with suffix ``.json``).  A path without a suffix takes ``.eqx``, as in
-    equinox: ``save_schedule("s1", ...)`` writes ``s1.eqx`` and ``s1.json``.
+    hyperparameters, gains, units, ``metadata`` and, with ``drive``, the drive it was tuned for
+    (type, travel and a SHA-256 of its parameters) to the JSON file beside it (``path`` with
+    suffix ``.json``, plain JSON: read it for the metadata).  A path without a suffix takes
+    ``.eqx``, as in equinox: ``save_schedule("s1", ...)`` writes ``s1.eqx`` and ``s1.json``.
     :func:`load_schedule` reads both back (from ``"s1"`` or ``"s1.eqx"``), bit for bit."""
     _checks.instance(schedule, ScheduledLoop, "save_schedule(schedule=...)")
+    if drive is not None:
+        _checks.instance(drive, BallScrewDrive, "save_schedule(drive=...)")
     path = _schedule_path("save_schedule", path)
     folder = os.path.dirname(path)
     if folder and not os.path.isdir(folder):
         raise FileNotFoundError(f"`save_schedule(path=...)`: no folder {folder!r}")
     write_pair(path, schedule, os.path.splitext(path)[0] + ".json",
-               _hyperparameters(schedule, metadata), "save_schedule")
+               _hyperparameters(schedule, metadata, drive), "save_schedule")
 
 
 def write_pair(leaves_path: str, tree, json_path: str, meta: dict, fn: str) -> None:
@@ -519,19 +562,26 @@ def read_leaves(path: str, like, where: str, kind: str):
     try:
         with open(path, "rb") as f:  # a file object: equinox adds no suffix to it
             tree = eqx.tree_deserialise_leaves(f, like)
+            left = len(f.read())
     except Exception as err:  # numpy's and equinox's errors of a file that is not the tree
         raise ValueError(f"`{where}`: {path!r} does not hold the leaves of {kind} that its JSON "
                          f"describes (truncated, corrupt, or written for something else): "
                          f"{type(err).__name__}: {err}") from err
+    if left:  # the leaves of a larger tree (another file) read as far as this one goes
+        raise ValueError(f"`{where}`: {path!r} does not hold the leaves of {kind} that its JSON "
+                         f"describes (written for something else: {left} bytes left over)")
     _check_finite_leaves(tree, where, f"in {path!r} (not {kind} a loop can run)")
     return tree
 
 
-def load_schedule(path: str | os.PathLike) -> ScheduledLoop:
+def load_schedule(path: str | os.PathLike, *,
+                  drive: BallScrewDrive | None = None) -> ScheduledLoop:
     """Read a schedule written by :func:`save_schedule` (the leaves at ``path``, the
     hyperparameters from the JSON file beside it, ``path`` with suffix ``.json``).  A path
     without a suffix takes ``.eqx``, as :func:`save_schedule` does: ``load_schedule("s1")``
-    reads ``s1.eqx`` and ``s1.json``."""
+    reads ``s1.eqx`` and ``s1.json``.  With ``drive``, the drive the schedule was saved for
+    must be this one (same parameters).  Leaves that are not those the JSON describes
+    (another file, its gains, its network) are an error."""
     given = os.fspath(path)
     path = _schedule_path("load_schedule", given)
     if os.path.isdir(given):
@@ -554,10 +604,25 @@ def load_schedule(path: str | os.PathLike) -> ScheduledLoop:
                          f"(format {meta.get('format')!r}, expected {_FORMAT!r})")
     try:
         bounds = bounds_from_json(meta["bounds"])
-        net = ATANetwork(tuple(meta["network"]["travel_m"]), width=meta["network"]["width"],
-                         gains=bool(meta["network"].get("gains", False)))
+        network = meta["network"]
+        if (network.get("depth", 2), network.get("activation", "sigmoid")) != (2, "sigmoid"):
+            raise ValueError(f"a network of depth {network.get('depth')!r} and activation "
+                             f"{network.get('activation')!r}, where fdjax's has 2 and "
+                             "'sigmoid'")
+        net = ATANetwork(tuple(network["travel_m"]), width=network["width"],
+                         gains=bool(network.get("gains", False)))
+        if "outputs" in network and list(network["outputs"]) != list(net.outputs):
+            raise ValueError(f"outputs {network['outputs']}, where the network has "
+                             f"{list(net.outputs)}")
         like = ScheduledLoop(DoubleLoop(**meta["gains"]), net, bounds)
     except (KeyError, TypeError, ValueError) as err:
         raise ValueError(f"`{where}`: {meta_path!r} does not describe an fdjax schedule "
                          f"({type(err).__name__}: {err})") from err
-    return read_leaves(leaves, like, where, "a schedule")
+    check_drive(meta, drive, where, meta_path)
+    schedule = read_leaves(leaves, like, where, "a schedule")
+    gains = {k: float(getattr(schedule.loop, k)) for k in meta["gains"]}
+    if gains != {k: float(v) for k, v in meta["gains"].items()}:
+        raise ValueError(f"`{where}`: {leaves!r} does not hold the leaves its JSON describes: "
+                         f"gains {gains}, where {meta_path!r} has {meta['gains']} (the leaves "
+                         "of another schedule, or an edited JSON)")
+    return schedule
