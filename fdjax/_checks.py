@@ -246,7 +246,7 @@ def finite_output(value, where: str):
 
 def _field(test, where: str, **kwargs):
     def convert(x):
-        return test(jnp.asarray(x, dtype=jnp.float64), where)
+        return test(real_array(x, where), where)
 
     return eqx.field(converter=convert, **kwargs)
 

@@ -560,11 +560,33 @@ def test_default_acceleration_feedforward_is_the_rigid_body_inertia():
         (lambda: fdjax.pade(250e-6, 0),
          r"`pade\(order=\.\.\.\)` must be an integer between 1 and 16, got 0"),
         (lambda: fdjax.pade(-1e-4, 3), r"`pade\(tau=\.\.\.\)` must be finite and positive"),
+        # named for pade, not for the LTI it builds; a delay in µs given as seconds
+        (lambda: fdjax.pade([1e-3, 2e-3], 2), r"`pade\(tau=\.\.\.\)` must be a real scalar"),
+        (lambda: fdjax.pade(250.0, 2), r"`pade\(tau=\.\.\.\)` must be a delay in seconds of at "
+                                       r"most 1 s, got 250: in µs\? 250 µs is 0\.00025 s"),
+        # a law without paths (open_loop had answered L = 0), or with something else in them
+        (lambda: fdjax.Law(()), r"`Law\(paths=\.\.\.\)` must be a non-empty tuple of "
+                                r"fdjax\.Path .* got tuple of 0"),
+        (lambda: fdjax.Law((fdjax.Path({"r": 1.0}), 3)), r"got tuple of 2: Path, int"),
+        # a filter the servo cannot sample, named for the function called (it named
+        # MCM.discretize)
+        (lambda: fdjax.to_python_control(DoubleLoop(mcm=fdjax.MCM(None, fdjax.NotchFilter(
+            2 * np.pi * 4500, 0.05, 0.5)))),
+         r"`to_python_control\(controller=\.\.\.\)` cannot be run by the servo \(period "
+         r"0\.000125 s, Nyquist frequency 4000 Hz\): .*up to 4500 Hz"),
     ],
 )
 def test_bad_parameters(build, match):
     with pytest.raises(ValueError, match=match):
         build()
+
+
+def test_a_field_that_is_not_a_number_is_named():
+    """The fields checked in their converters name themselves (k_motor gave NumPy's "could not
+    convert string to float")."""
+    with pytest.raises(TypeError, match=r"`Servo\(k_motor=\.\.\.\)` must be a number or an "
+                                        r"array of numbers, got 'a'"):
+        fdjax.Servo(k_motor="a")
 
 
 def test_bad_analysis_inputs(drive, frf):

@@ -231,7 +231,12 @@ def pade(tau: Float[ArrayLike, ""], order: int) -> LTI:
         order: n in [1, 16] (static).
     """
     n = pade_order(order, "pade(order=...)")
-    tau = _checks.positive(jnp.asarray(tau, jnp.float64), "pade(tau=...)")
+    where = "pade(tau=...)"
+    tau = _checks.positive(_checks.real_scalar(tau, where), where)
+    if _checks.is_concrete(tau) and float(tau) > 1.0:  # a servo's delay is micro- to milliseconds
+        raise ValueError(f"`{where}` must be a delay in seconds of at most 1 s, got "
+                         f"{float(tau):.6g}: in µs? {float(tau):.6g} µs is "
+                         f"{float(tau) * 1e-6:.6g} s")
     return pade_ss(tau, n)
 
 

@@ -87,6 +87,17 @@ class Law(eqx.Module):
 
     paths: tuple[Path, ...]
 
+    def __check_init__(self):
+        paths = self.paths
+        if not (isinstance(paths, tuple | list) and paths
+                and all(isinstance(p, Path) for p in paths)):
+            got = (f"{type(paths).__name__} of {len(paths)}" if isinstance(paths, tuple | list)
+                   else type(paths).__name__)
+            raise ValueError("`Law(paths=...)` must be a non-empty tuple of fdjax.Path (the "
+                             f"law's signal paths), got {got}"
+                             + (": " + ", ".join(type(p).__name__ for p in paths)
+                                if isinstance(paths, tuple | list) and paths else ""))
+
     def reads(self, signal: str) -> bool:
         """Whether the law reads ``signal`` (static: from the paths' structure)."""
         return any(signal in p.gains for p in self.paths)

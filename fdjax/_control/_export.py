@@ -56,7 +56,13 @@ def to_python_control(controller: AbstractController,
     position_m = controller.check_position(position_m, f"{fn}(position_m=...)")
     law = controller.law(position_m)
     period = float(servo.period) if discrete else None
-    lti = realise_law(law, period=period, filter_method=filter_method)
+    try:
+        lti = realise_law(law, period=period, filter_method=filter_method)
+    except ValueError as err:  # a filter the servo cannot sample: named for the caller
+        if period is None:
+            raise
+        raise ValueError(f"`{fn}(controller=...)` cannot be run by the servo (period {period:g} "
+                         f"s, Nyquist frequency {0.5 / period:g} Hz): {err}") from err
     A, B, C, D = (np.array(x, np.float64) for x in (lti.A, lti.B, lti.C, lti.D))
     sys = control.ss(A, B, C, D, period if discrete else 0, inputs=list(LAW_SIGNALS),
                      outputs=["u"])

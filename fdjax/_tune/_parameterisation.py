@@ -73,32 +73,28 @@ def _pair(value, where: str) -> tuple[float, float]:
     return lo, hi
 
 
-def _plain(value):
-    """A static field's value as Python floats (a concrete real scalar, or a pair of them), so
-    that the bounds hash, compare and serialise as numbers; anything else is left as it is
-    for ``__check_init__`` to name."""
-    def one(v):
-        if isinstance(v, bool) or not is_concrete(v) or np.ndim(v) != 0:
-            raise TypeError
-        if not np.isrealobj(v):
-            raise TypeError
-        return float(v)
+def _float(v) -> float:
+    """A concrete real scalar as a Python float; anything else a ``TypeError``/``ValueError``."""
+    if isinstance(v, bool) or not is_concrete(v) or np.ndim(v) != 0 or not np.isrealobj(v):
+        raise TypeError
+    return float(v)
 
-    try:
-        return one(value)
-    except (TypeError, ValueError):
-        pass
-    if isinstance(value, tuple | list) and len(value) == 2:
+
+def _static(pair: bool, **kwargs):
+    """A static bounds field whose value is kept as Python floats (a number, or a (low, high)
+    pair with ``pair``), so that the bounds hash, compare and serialise as numbers; anything
+    else is left as it is for ``__check_init__`` to name."""
+    def convert(value):
         try:
-            return tuple(one(v) for v in value)
+            if pair:
+                if not (isinstance(value, tuple | list) and len(value) == 2):
+                    return value
+                return tuple(_float(v) for v in value)
+            return _float(value)
         except (TypeError, ValueError):
-            pass
-    return value
+            return value
 
-
-def _static(**kwargs):
-    """A static bounds field converted by :func:`_plain`."""
-    return eqx.field(static=True, converter=_plain, **kwargs)
+    return eqx.field(static=True, converter=convert, **kwargs)
 
 
 LOG_GAIN_LIMIT = 30.0
@@ -165,13 +161,13 @@ class MCMBounds(eqx.Module):
         notch_depth_min: d_min, the deepest notch ζ_n/ζ_d, in (0, 1).
     """
 
-    period: float = _static()
-    freq_hz: tuple[float, float] = _static(default=(10.0, 3600.0))
-    peak_gain: tuple[float, float] = _static(default=(1e-3, 10.0))
-    peak_damping: tuple[float, float] = _static(default=(0.02, 1.0))
-    peak_phase_max: float = _static(default=math.pi)
-    notch_damping: tuple[float, float] = _static(default=(0.01, 2.0))
-    notch_depth_min: float = _static(default=1e-3)
+    period: float = _static(False)
+    freq_hz: tuple[float, float] = _static(True, default=(10.0, 3600.0))
+    peak_gain: tuple[float, float] = _static(True, default=(1e-3, 10.0))
+    peak_damping: tuple[float, float] = _static(True, default=(0.02, 1.0))
+    peak_phase_max: float = _static(False, default=math.pi)
+    notch_damping: tuple[float, float] = _static(True, default=(0.01, 2.0))
+    notch_depth_min: float = _static(False, default=1e-3)
 
     def __check_init__(self):
         T = concrete_float(self.period, "MCMBounds(period=...)")
