@@ -40,6 +40,7 @@ from ._drive._model import BallScrewDrive
 from ._drive._twin import StateSpace, TwinOptions, _twin_options, state_space
 from ._lti import LTI
 from ._results import RESULTS
+from ._simulation._lifted import MARGINAL
 from ._simulation._methods import AbstractLoopModel, SampledData
 from ._sweep import map_positions
 
@@ -557,7 +558,7 @@ def _stability_impl(controller, kind, p, servo, method):
         s = method.poles_to_s(lam, servo)
         # a pole at s = 0 to round-off (z = 1 - 1e-14, or 0 exactly): one value for both loop
         # models, not a verdict set by the last bit (Stability.growth_rate)
-        at_zero = jnp.abs(s) * servo.period <= _MARGINAL
+        at_zero = jnp.abs(s) * servo.period <= MARGINAL
         re = jnp.where(at_zero, 0.0, jnp.real(s))
         order = jnp.argsort(-re)
         lam, s, re, at_zero = lam[order], s[order], re[order], at_zero[order]
@@ -579,12 +580,6 @@ def _stability_impl(controller, kind, p, servo, method):
 
     return _map_twins(kind, p, one, has_eig=True)
 
-
-_MARGINAL = 1e-9
-"""A pole with |s| T below this (T the servo's period) is at s = 0: round-off puts the sampled
-loop's z = 1 at 1 − 3e-14 (|ln z| ~ 3e-14) and the continuous loop's s = 0 within
-~eps·‖A‖ ~ 1e-8 1/s (measured exactly 0), while a PID whose integral gain is a thousandth of
-the reference's still has its slowest pole at |s| T = 8e-8 (−6.7e-4 1/s)."""
 
 _stability_traced = eqx.debug.assert_max_traces(_stability_impl, max_traces=None)
 _stability_jit = eqx.filter_jit(_stability_traced)

@@ -350,6 +350,8 @@ def concrete_float(value, where: str) -> float:
     arr = np.asarray(_numbers(value, where))
     if not np.isrealobj(arr):
         raise ValueError(f"`{where}` must be real, got dtype {arr.dtype}")
+    if arr.dtype == bool:  # True is not a duration of 1 s
+        raise ValueError(f"`{where}` must be a number, got the boolean {value!r}")
     if arr.shape != ():
         raise ValueError(f"`{where}` must be a scalar, got shape {arr.shape}")
     return float(arr)

@@ -248,3 +248,54 @@ def test_a_moving_run_that_rests_on_an_unstable_loop_is_unstable():
     ok = fdjax.simulate(ref, drive_, jerk_limited(1e-4, 0.05, 2.0, 400.0), position_m=0.3,
                         duration=0.02, **kw)
     assert ok.result == fdjax.RESULTS.successful and float(ok.growth_rate) < 0
+
+
+class _SpeedPI(fdjax.AbstractController):
+    """u = PI(ṙ − v_m): a speed loop and nothing on the table position."""
+
+    def law(self, position_m):
+        return fdjax.Law((fdjax.Path({"r_dot": 1.0, "v_m": -1.0}, (fdjax.PI(150.0, 10.0),)),))
+
+
+def test_runs_agree_with_the_eigenvalues_on_marginal_and_unstable_loops():
+    """On the reference drive (twin of 4 modes):
+
+    * a loop with a pole at s = 0 (no position feedback) runs to the end and is not called
+      unstable (the growth estimate lies 1e-10 above the spectral radius, and 'growth ≥ 0' had
+      raised "unstable ... growing at 1.8e-10 1/s"); its message names Y₀, not Y₀ + r(0);
+    * an unstable continuous run's state is held below overflow: the gradient of its RMS
+      error is finite (it was NaN, 0·∞ in the reverse pass, while the value was finite);
+    * the moving table calls an unstable loop unstable, as the frozen run does (it said
+      'diverged');
+    * a filter above Nyquist is named eagerly with the moving table too, and a duration of
+      True is not 1 s."""
+    from fdjax._simulation._lifted import MARGINAL
+
+    drive, tw = fdjax.reference_drive(), fdjax.TwinOptions(kept_modes=4)
+    ref = jerk_limited(1e-3, 0.05, 2.0, 200.0, start=0.005)
+    for method in (fdjax.SampledData(), fdjax.PadeODE()):
+        run = fdjax.simulate(_SpeedPI(), drive, ref, method, position_m=0.4, twin=tw)
+        assert run.result == fdjax.RESULTS.successful, run.message
+        assert abs(float(run.growth_rate)) * 1.25e-4 < MARGINAL
+        assert run.message == "simulation ok at table position 0.4 m"
+    traj = jerk_limited(1e-3, 0.05, 2.0, 200.0)
+    twin = fdjax.state_space(drive, 0.4, twin=tw)
+
+    def rms(log_kv, plant, method, **kw):
+        c = eqx.tree_at(lambda c: c.log_kv, fdjax.DoubleLoop(), log_kv)
+        s = fdjax.simulate(c, plant, traj, method, duration=0.03, throw=False, **kw)
+        return s.rms_error(), s.result
+
+    (v, result), g = jax.value_and_grad(rms, has_aux=True)(jnp.log(1e8), twin, fdjax.PadeODE())
+    assert result == fdjax.RESULTS.unstable and np.isfinite(float(v)), float(v)
+    assert np.isfinite(float(g)), float(g)
+    _, moving = rms(jnp.log(1e8), drive, fdjax.SampledData(), position_m=0.4, moving=True,
+                    twin=tw)
+    assert moving == fdjax.RESULTS.unstable
+    notch = fdjax.DoubleLoop(mcm=fdjax.MCM(None, fdjax.NotchFilter(2 * np.pi * 5000, 0.05, 0.5)))
+    with pytest.raises(ValueError, match=r"`simulate\(controller=\.\.\.\)` has a filter at 5000 "
+                                         r"Hz, not below the Nyquist frequency 4000 Hz"):
+        fdjax.simulate(notch, drive, traj, position_m=0.4, moving=True, twin=tw)
+    with pytest.raises(ValueError, match=r"`simulate\(duration=\.\.\.\)` must be a number, got "
+                                         r"the boolean True"):
+        fdjax.simulate(notch, drive, traj, position_m=0.4, duration=True)

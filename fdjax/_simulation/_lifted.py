@@ -15,6 +15,22 @@ import jax.numpy as jnp
 CHUNK = 16  # samples per block of the lifted recursion
 _HOLD = 1e30  # a run's state beyond it has diverged (physical states are ≲ 1e3)
 
+MARGINAL = 1e-9
+"""A pole with |s| T below this (T the servo's period; |ln z| for the sampled loop) is at s = 0:
+marginal, neither decaying nor growing.  Round-off puts the sampled loop's z = 1 at
+1 − 3e-14, and :func:`growth_rate`'s estimate lies 1e-10–1e-9 1/s above the spectral radius
+(|s| T ~ 1e-13), while a PID whose integral gain is a thousandth of the reference's still has
+its slowest pole at |s| T = 8e-8."""
+
+
+def held(new, old, alive):
+    """(``new`` while every entry of it stays below :data:`_HOLD` and the run is ``alive``,
+    else ``old``; whether it is still alive): a diverging state is held at its last value, so
+    the reverse pass multiplies the zero cotangents of the samples after the failure by finite
+    states, not 0 · ∞ = NaN."""
+    alive = alive & jnp.all(jnp.abs(new) < _HOLD)
+    return jnp.where(alive, new, old), alive
+
 
 def growth_rate(Phi, h, squarings: int = 48):
     r"""σ = ln ρ(Φ)/h (1/s): the growth rate of the least stable pole of a loop whose state
@@ -86,12 +102,8 @@ def lifted_outputs(A, B, C, D, W, K: int = CHUNK):
 
     def body(carry, u):
         s, alive = carry
-        new = AK @ s + u
-        # a diverging state is held at its last value below _HOLD, never carried to overflow:
-        # the reverse pass then multiplies the zero cotangents of the samples after the
-        # failure by finite states, not 0 · ∞ = NaN
-        alive = alive & jnp.all(jnp.abs(new) < _HOLD)
-        return (jnp.where(alive, new, s), alive), (s, alive)
+        # a diverging state is held at its last value below _HOLD, never carried to overflow
+        return held(AK @ s + u, s, alive), (s, alive)
 
     _, (S, alive) = jax.lax.scan(body, (jnp.zeros(A.shape[0]), jnp.ones((), bool)), U)
     obs = jnp.einsum("pi,kin->kpn", C, powers)  # (K, p, n): C A^j

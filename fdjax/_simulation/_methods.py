@@ -54,7 +54,7 @@ from .._control._servo import Servo
 from .._drive._twin import StateSpace
 from .._lti import LTI, expm
 from .._results import RESULTS
-from ._lifted import first_bad, growth_rate, lifted_outputs
+from ._lifted import MARGINAL, first_bad, growth_rate, held, lifted_outputs
 
 __all__ = ["AbstractLoopModel", "SampledData", "Continuous", "PadeODE", "ExponentialFOH"]
 
@@ -115,6 +115,12 @@ class AbstractLoopModel(eqx.Module):
     def name(self) -> str:
         """The model's class name (as printed in reports)."""
         return type(self).__name__
+
+
+def growing(growth, period):
+    """Whether a growth rate (1/s) is that of an unstable loop: above the round-off of a pole at
+    s = 0 (:data:`MARGINAL` / ``period``), which is marginal, not unstable."""
+    return growth * period > MARGINAL
 
 
 def _check_filters_sampled(controller, servo, fn: str) -> None:
@@ -283,7 +289,7 @@ class SampledData(AbstractLoopModel):
         failed_at, Y = first_bad(finite, Y, W, bound)
         growth = self._growth(sl, servo)
         result = RESULTS.where(failed_at < W.shape[0], RESULTS.diverged, RESULTS.successful)
-        result = RESULTS.where(growth >= 0, RESULTS.unstable, result)
+        result = RESULTS.where(growing(growth, servo.period), RESULTS.unstable, result)
         return Y, failed_at, result, growth
 
     def _growth(self, sl, servo):
@@ -313,12 +319,15 @@ class SampledData(AbstractLoopModel):
         # rematerialised in the reverse pass: a gradient keeps the state per sample, not the
         # FE model and matrix exponentials of every sample (tens of GB for a 1 s run)
         @jax.checkpoint
-        def step(s, inputs):
+        def step(carry, inputs):
+            s, alive = carry
             w, y_k, y_mid = inputs
             out, tr = system(y_k), system(y_mid)
-            return tr.A @ s + tr.B @ w, (out.C @ s + out.D @ w, jnp.all(jnp.isfinite(s)))
+            # a diverging state is held below overflow (a NaN gradient otherwise)
+            return held(tr.A @ s + tr.B @ w, s, alive), (out.C @ s + out.D @ w, alive)
 
-        _, (Y, finite) = jax.lax.scan(step, s0, (W, positions, mid_positions))
+        _, (Y, finite) = jax.lax.scan(step, (s0, jnp.ones((), bool)),
+                                      (W, positions, mid_positions))
         failed_at, Y = first_bad(finite, Y, W, bound)
         result = RESULTS.where(failed_at < W.shape[0], RESULTS.diverged, RESULTS.successful)
         return Y, failed_at, result
@@ -414,7 +423,9 @@ class ExponentialFOH(diffrax.AbstractSolver):
             A, B = terms.system(0.5 * (t0 + t1))[:2]
             Phi, G0, G1 = _foh_matrices(A, B, h)
         w0, w1 = terms.inputs(t0), terms.inputs(t1)
-        y1 = Phi @ y0 + G0 @ w0 + G1 @ (w1 - w0)
+        # a diverging state is held below overflow (a NaN gradient otherwise): the run is
+        # judged diverged by its error first
+        y1, _ = held(Phi @ y0 + G0 @ w0 + G1 @ (w1 - w0), y0, jnp.ones((), bool))
         return y1, None, dict(y0=y0, y1=y1), solver_state, diffrax.RESULTS.successful
 
     def func(self, terms, t0, y0, args):
@@ -619,7 +630,7 @@ class PadeODE(AbstractLoopModel):
         X = sol.ys
         Y, failed_at, result = self._result(sol, X, X @ cl.C.T + W @ cl.D.T, W, bound)
         growth = self._growth(cl, dt)
-        result = RESULTS.where(growth >= 0, RESULTS.unstable, result)
+        result = RESULTS.where(growing(growth, dt), RESULTS.unstable, result)
         return Y, failed_at, result, growth
 
     @staticmethod

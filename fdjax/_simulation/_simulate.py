@@ -30,7 +30,7 @@ from .._control._servo import Servo
 from .._drive._model import BallScrewDrive
 from .._drive._twin import StateSpace, TwinOptions, _twin_options, state_space
 from .._results import RESULTS
-from ._methods import AbstractLoopModel, SampledData
+from ._methods import AbstractLoopModel, SampledData, _check_filters_sampled, growing
 from ._moving import MovingPlant
 
 __all__ = ["Simulation", "simulate", "SIMULATION_OUTPUTS"]
@@ -100,13 +100,15 @@ class Simulation(eqx.Module):
         k = np.atleast_1d(np.asarray(self.failed_at))
         t = np.asarray(self.t).reshape(codes.shape[0], -1)
         pos = np.asarray(self.position_m).reshape(codes.shape[0], -1)
+        # Y₀, where the loop is built (position_m is Y₀ + r(t), and r(0) may be off zero)
+        r0 = np.asarray(self.reference)[..., 0, 0].reshape(-1)
         names = {int(getattr(RESULTS, a)._value): a for a in RESULTS._name_to_item}
         lo, hi = self.travel_m
         lines = []
         for i, code in enumerate(codes):
             name = names[int(code)]
             j = min(int(k[i]), t.shape[1] - 1)
-            y0 = pos[i, 0]
+            y0 = pos[i, 0] - r0[i]
             if name == "successful":
                 lines.append(f"simulation ok at table position {y0:.4g} m")
             elif name == "unstable":
@@ -234,6 +236,8 @@ def simulate(
     if not moving:  # a moving table rebuilds the loop and says so itself
         method.check_use(controller, plant if isinstance(plant, StateSpace) else None, servo,
                          f"{fn}(method=...)")
+    elif isinstance(method, SampledData):  # the filters it discretises at every step
+        _check_filters_sampled(controller, servo, fn)
     dt = method.output_period(servo)
     n = int(round(duration / dt)) + 1
     if duration < dt * (1 - 1e-9):  # a run of one sample (or PadeODE's of one output time)
@@ -382,7 +386,8 @@ def _simulate_impl(
                 controller, moving_plant.at(y), servo))(ends)
             worst = jnp.argmax(g_ends)
             growth, unstable_at = g_ends[worst], ends[worst]
-            result = RESULTS.where((growth >= 0) & (result == RESULTS.successful),
+            # as the frozen run: growing makes it unstable, diverged or not
+            result = RESULTS.where(growing(growth, method.output_period(servo)),
                                    RESULTS.unstable, result)
         else:
             outside = ~jnp.all((pos >= lo) & (pos <= hi))
