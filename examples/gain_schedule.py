@@ -80,7 +80,8 @@ def main(argv=None):
     h = np.asarray(record.history)
     print(f"trained in {time.perf_counter() - t0:.0f} s: objective {h[0]:.4g} → {h.min():.4g}")
     if args.out:
-        fdjax.save_schedule(args.out, trained, metadata={"drive": "fdjax.reference_drive()"})
+        fdjax.save_schedule(args.out, trained, drive=drive,
+                            metadata={"drive": "fdjax.reference_drive()"})
     y = np.linspace(0.1, 0.7, 61)
     res = fdjax.evaluate({"mcm_ata": shipped["mcm_ata"], "mcm_ata_e2e": shipped["mcm_ata_e2e"],
                           "gain_schedule": trained}, drive, y, servo=servo, progress=False)

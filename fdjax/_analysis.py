@@ -99,13 +99,14 @@ class Stability(eqx.Module):
     Attributes:
         stable: every closed-loop pole decays (Re s < 0; |z| < 1 for the sampled loop).
         growth_rate: max Re s over the poles (1/s), s = ln z / T for the sampled loop;
-            negative when stable.  A pole at s = 0 (z = 1) to round-off, |s| T ≤ 1e-9 with T
-            the servo's period (|ln z| ≤ 1e-9; a time constant above 1.4 days at 8 kHz),
-            counts as s = 0 exactly (growth 0: marginally stable, not stable), by both loop
-            models alike: a state no feedback acts on, such as the table position of a
-            controller without a position loop.
+            negative when stable.  A pole on the stability boundary to round-off,
+            |Re s| T ≤ 1e-9 with T the servo's period (ln|z| for the sampled loop; a time
+            constant above 1.4 days at 8 kHz), counts as Re s = 0 exactly (growth 0: marginally
+            stable, not stable), by both loop models and by :func:`fdjax.simulate` alike: a
+            state no feedback acts on, such as the table position of a controller without a
+            position loop (s = 0), or an undamped mode it does not see.
         min_damping: min over the poles of −Re s/|s| (the least damped pole's ratio; 0 for a
-            pole at s = 0).
+            pole on the boundary).
         position_m: the table position (m).
         poles: the closed loop's eigenvalues (s, or z for the sampled loop), least stable first.
         result: ``RESULTS.successful`` or ``RESULTS.unstable``.
@@ -130,17 +131,17 @@ class Stability(eqx.Module):
         poles = np.asarray(self.poles).reshape(stable.shape[0], -1)
         lines = []
         for ok, p, gr, lam in zip(stable, pos, g, poles):
-            if gr == 0.0:
-                lines.append(
-                    f"closed loop marginally stable at table position {p:.4g} m: a pole at "
-                    f"{'z = 1' if self.discrete else 's = 0'} (0 Hz), a state no feedback acts "
-                    "on (such as the table position of a controller without a position loop)"
-                )
-                continue
             w = lam[0]
             hz = abs(np.angle(w)) / (2 * np.pi * self._period) if self.discrete else (
                 abs(w.imag) / (2 * np.pi)
             )
+            if gr == 0.0:
+                lines.append(
+                    f"closed loop marginally stable at table position {p:.4g} m: a pole at "
+                    f"{hz:.4g} Hz neither decays nor grows, a state no feedback acts on (such "
+                    "as the table position of a controller without a position loop)"
+                )
+                continue
             what = "decaying" if ok else "growing"
             lines.append(
                 f"closed loop {'stable' if ok else 'unstable'} at table position {p:.4g} m: "
@@ -556,9 +557,10 @@ def _stability_impl(controller, kind, p, servo, method):
         cl = method.closed_loop(controller, twin, servo)
         lam = jnp.linalg.eigvals(cl.A)
         s = method.poles_to_s(lam, servo)
-        # a pole at s = 0 to round-off (z = 1 - 1e-14, or 0 exactly): one value for both loop
-        # models, not a verdict set by the last bit (Stability.growth_rate)
-        at_zero = jnp.abs(s) * servo.period <= MARGINAL
+        # a pole on the boundary to round-off (z = 1 - 1e-14, or s = 0 exactly; an undamped
+        # mode): one verdict for both loop models and simulate, not one set by the last bit
+        # (Stability.growth_rate)
+        at_zero = jnp.abs(jnp.real(s)) * servo.period <= MARGINAL
         re = jnp.where(at_zero, 0.0, jnp.real(s))
         order = jnp.argsort(-re)
         lam, s, re, at_zero = lam[order], s[order], re[order], at_zero[order]

@@ -324,6 +324,8 @@ def real_array(value, where: str) -> jax.Array:
     arr = numeric(value, where)
     if jnp.issubdtype(arr.dtype, jnp.complexfloating):
         raise ValueError(f"`{where}` must be real, got dtype {arr.dtype}")
+    if arr.dtype == bool:  # True is not a length of 1 m
+        raise ValueError(f"`{where}` must be a number, got booleans")
     return arr.astype(jnp.float64)
 
 
@@ -334,7 +336,7 @@ def real_scalar(value, where: str) -> jax.Array:
     traced argument of a jitted function (not a static one, which would compile per value).
     """
     arr = numeric(value, where)
-    if arr.ndim != 0 or jnp.issubdtype(arr.dtype, jnp.complexfloating):
+    if arr.ndim != 0 or jnp.issubdtype(arr.dtype, jnp.complexfloating) or arr.dtype == bool:
         raise ValueError(f"`{where}` must be a real scalar, got {arr.dtype} of shape {arr.shape}")
     return arr.astype(jnp.float64)
 

@@ -499,13 +499,13 @@ def test_a_loop_without_position_feedback_is_marginally_stable_by_both_models():
     2.5), and gain_headroom says it has none to measure.  The reference drive."""
     drive = fdjax.reference_drive()
     ctl = _SpeedOnly(jnp.asarray(150.0))
-    for method, pole in ((fdjax.SampledData(), "z = 1"), (fdjax.Continuous(), "s = 0")):
+    for method in (fdjax.SampledData(), fdjax.Continuous()):
         st = fdjax.check_stability(ctl, drive, position_m=0.4, method=method)
         assert not bool(st.stable)
         assert (float(st.growth_rate), float(st.min_damping)) == (0.0, 0.0)
         assert st.message == ("closed loop marginally stable at table position 0.4 m: a pole at "
-                              f"{pole} (0 Hz), a state no feedback acts on (such as the table "
-                              "position of a controller without a position loop)")
+                              "0 Hz neither decays nor grows, a state no feedback acts on (such "
+                              "as the table position of a controller without a position loop)")
         # every other pole decays (the slowest at -20.2 and -27.8 1/s)
         s = np.asarray(method.poles_to_s(st.poles[1:], fdjax.Servo()))
         assert np.all(s.real[np.isfinite(s)] < -15.0)
@@ -583,10 +583,19 @@ def test_bad_parameters(build, match):
 
 def test_a_field_that_is_not_a_number_is_named():
     """The fields checked in their converters name themselves (k_motor gave NumPy's "could not
-    convert string to float")."""
+    convert string to float"); a boolean is not a number of 1 (a Rod of length True had been
+    1 m, pade(True) a delay of 1 s); pade's bound on the delay holds under jit too."""
     with pytest.raises(TypeError, match=r"`Servo\(k_motor=\.\.\.\)` must be a number or an "
                                         r"array of numbers, got 'a'"):
         fdjax.Servo(k_motor="a")
+    with pytest.raises(ValueError, match=r"`Servo\(k_motor=\.\.\.\)` must be a number, got "
+                                         r"booleans"):
+        fdjax.Servo(k_motor=True)
+    with pytest.raises(ValueError, match=r"`pade\(tau=\.\.\.\)` must be a real scalar, got bool"):
+        fdjax.pade(True, 2)
+    with pytest.raises(CHECK_FAILED, match=r"`pade\(tau=\.\.\.\)` must be a delay in seconds of "
+                                           r"at most 1 s"):
+        jax.block_until_ready(jax.jit(lambda t: fdjax.pade(t, 2).A)(250.0))
 
 
 def test_bad_analysis_inputs(drive, frf):

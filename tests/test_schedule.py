@@ -188,6 +188,9 @@ def test_a_file_must_be_the_schedule_its_json_describes_for_the_drive_given(tmp_
     assert meta["drive"]["type"] == "BallScrewDrive" and len(meta["drive"]["sha256"]) == 64
     assert meta["bounds"]["period_s"] == float(np.float32(1.25e-4))
     assert type(bounds.period) is float and type(bounds.freq_hz[0]) is float
+    as_array = fdjax.MCMBounds(period=1.25e-4, freq_hz=jnp.array([20.0, 3000.0]))
+    assert as_array.freq_hz == (20.0, 3000.0) and hash(as_array) == hash(
+        fdjax.MCMBounds(period=1.25e-4, freq_hz=(20.0, 3000.0)))
     assert bool(eqx.tree_equal(fdjax.load_schedule(one, drive=drive), sched))
     stiffer = eqx.tree_at(lambda d: d.nut.stiffness, drive, drive.nut.stiffness * 1.01)
     with pytest.raises(ValueError, match=r"`load_schedule\(drive=\.\.\.\)`: .*one\.json' was "
@@ -206,6 +209,17 @@ def test_a_file_must_be_the_schedule_its_json_describes_for_the_drive_given(tmp_
     # trailing bytes: the leaves of something larger
     (tmp_path / "mixed.eqx").write_bytes(one.read_bytes() + bytes(64))
     with pytest.raises(ValueError, match=r"written for something else: 64 bytes left over"):
+        fdjax.load_schedule(tmp_path / "mixed.eqx")
+    # the JSON's gains as another backend's exp rounds them (XLA's and libm's differ by up to
+    # 2 ulp) load; a network entry that is not an object is named
+    kp = float(sched.loop.kp)
+    meta["gains"]["kp"] = float(np.nextafter(np.nextafter(kp, np.inf), np.inf))
+    (tmp_path / "mixed.eqx").write_bytes(one.read_bytes())
+    (tmp_path / "mixed.json").write_text(json.dumps(meta))
+    assert bool(eqx.tree_equal(fdjax.load_schedule(tmp_path / "mixed.eqx"), sched))
+    (tmp_path / "mixed.json").write_text(json.dumps({**meta, "network": [4, 2]}))
+    with pytest.raises(ValueError, match=r"does not describe an fdjax schedule "
+                                         r"\(AttributeError"):
         fdjax.load_schedule(tmp_path / "mixed.eqx")
     # a network the JSON says fdjax does not build
     meta["network"]["depth"] = 3

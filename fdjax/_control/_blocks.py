@@ -233,7 +233,9 @@ def pade(tau: Float[ArrayLike, ""], order: int) -> LTI:
     n = pade_order(order, "pade(order=...)")
     where = "pade(tau=...)"
     tau = _checks.positive(_checks.real_scalar(tau, where), where)
-    if _checks.is_concrete(tau) and float(tau) > 1.0:  # a servo's delay is micro- to milliseconds
+    if not _checks.is_concrete(tau):  # a servo's delay is micro- to milliseconds
+        tau = eqx.error_if(tau, tau > 1.0, f"`{where}` must be a delay in seconds of at most 1 s")
+    elif float(tau) > 1.0:
         raise ValueError(f"`{where}` must be a delay in seconds of at most 1 s, got "
                          f"{float(tau):.6g}: in µs? {float(tau):.6g} µs is "
                          f"{float(tau) * 1e-6:.6g} s")

@@ -16,11 +16,11 @@ CHUNK = 16  # samples per block of the lifted recursion
 _HOLD = 1e30  # a run's state beyond it has diverged (physical states are ≲ 1e3)
 
 MARGINAL = 1e-9
-"""A pole with |s| T below this (T the servo's period; |ln z| for the sampled loop) is at s = 0:
-marginal, neither decaying nor growing.  Round-off puts the sampled loop's z = 1 at
-1 − 3e-14, and :func:`growth_rate`'s estimate lies 1e-10–1e-9 1/s above the spectral radius
-(|s| T ~ 1e-13), while a PID whose integral gain is a thousandth of the reference's still has
-its slowest pole at |s| T = 8e-8."""
+"""A pole with |Re s| T below this (T the servo's period; ln|z| for the sampled loop) is on
+the stability boundary: marginal, neither decaying nor growing.  Round-off puts the sampled
+loop's z = 1 at 1 − 3e-14, and :func:`growth_rate`'s estimate lies 1e-10–1e-9 1/s above the
+spectral radius (|s| T ~ 1e-13), while a PID whose integral gain is a thousandth of the
+reference's still has its slowest pole at |s| T = 8e-8."""
 
 
 def held(new, old, alive):

@@ -630,7 +630,7 @@ class PadeODE(AbstractLoopModel):
         X = sol.ys
         Y, failed_at, result = self._result(sol, X, X @ cl.C.T + W @ cl.D.T, W, bound)
         growth = self._growth(cl, dt)
-        result = RESULTS.where(growing(growth, dt), RESULTS.unstable, result)
+        result = RESULTS.where(growing(growth, servo.period), RESULTS.unstable, result)
         return Y, failed_at, result, growth
 
     @staticmethod

@@ -387,8 +387,7 @@ def _simulate_impl(
             worst = jnp.argmax(g_ends)
             growth, unstable_at = g_ends[worst], ends[worst]
             # as the frozen run: growing makes it unstable, diverged or not
-            result = RESULTS.where(growing(growth, method.output_period(servo)),
-                                   RESULTS.unstable, result)
+            result = RESULTS.where(growing(growth, servo.period), RESULTS.unstable, result)
         else:
             outside = ~jnp.all((pos >= lo) & (pos <= hi))
             model = state_space(plant, pos0, twin=twin)

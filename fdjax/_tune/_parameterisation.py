@@ -86,8 +86,8 @@ def _static(pair: bool, **kwargs):
     else is left as it is for ``__check_init__`` to name."""
     def convert(value):
         try:
-            if pair:
-                if not (isinstance(value, tuple | list) and len(value) == 2):
+            if pair:  # a tuple, a list or an array of two numbers
+                if np.ndim(value) != 1 or np.shape(value)[0] != 2:
                     return value
                 return tuple(_float(v) for v in value)
             return _float(value)

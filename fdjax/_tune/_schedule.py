@@ -615,13 +615,17 @@ def load_schedule(path: str | os.PathLike, *,
             raise ValueError(f"outputs {network['outputs']}, where the network has "
                              f"{list(net.outputs)}")
         like = ScheduledLoop(DoubleLoop(**meta["gains"]), net, bounds)
-    except (KeyError, TypeError, ValueError) as err:
+    except (KeyError, TypeError, ValueError, AttributeError) as err:
         raise ValueError(f"`{where}`: {meta_path!r} does not describe an fdjax schedule "
                          f"({type(err).__name__}: {err})") from err
     check_drive(meta, drive, where, meta_path)
     schedule = read_leaves(leaves, like, where, "a schedule")
+    # the JSON's gains are e^θ as the saving backend rounded it (XLA's exp and libm's differ
+    # by up to 2 ulp): compared in θ, to 1e-12
     gains = {k: float(getattr(schedule.loop, k)) for k in meta["gains"]}
-    if gains != {k: float(v) for k, v in meta["gains"].items()}:
+    if not all(abs(math.log(abs(gains[k])) - math.log(abs(float(v)))) <= 1e-12
+               if gains[k] != 0 and float(v) != 0 else gains[k] == float(v)
+               for k, v in meta["gains"].items()):
         raise ValueError(f"`{where}`: {leaves!r} does not hold the leaves its JSON describes: "
                          f"gains {gains}, where {meta_path!r} has {meta['gains']} (the leaves "
                          "of another schedule, or an edited JSON)")
