@@ -676,8 +676,10 @@ def test_scheduled_loop_runs_the_continuous_simulation_and_the_moving_table():
         a = fdjax.simulate(sched_flat, drive, fast, method, moving=moving, **kw)
         b = fdjax.simulate(sched_flat.controller(y0), drive, fast, method, moving=moving, **kw)
         assert a.result == fdjax.RESULTS.successful
-        # the same arithmetic on the same values: measured bit-identical
-        assert rel(a.error_scale, b.error_scale) < 1e-14
+        # the same arithmetic on the same values: bit-identical with XLA's default flags; with
+        # the tests' (conftest.py) the Padé run's two programs fuse the solver step's hold of
+        # a diverging state apart: measured 1.2e-14
+        assert rel(a.error_scale, b.error_scale) < 5e-14
     # frozen at y0, the schedule's own network is its controller at y0 (the same programs)
     a = fdjax.simulate(sched, drive, fast, fdjax.PadeODE(), **kw)
     b = fdjax.simulate(sched.controller(y0), drive, fast, fdjax.PadeODE(), **kw)
@@ -686,5 +688,5 @@ def test_scheduled_loop_runs_the_continuous_simulation_and_the_moving_table():
     d = fdjax.simulate(sched.controller(y0), drive, fast, moving=True, **kw)
     assert float(c.position_m[-1]) > y0 + 5e-4  # it moved
     # the filters change with the position, a little over 1 mm: measured 1.13e-7 of the error
-    # (the flat network's runs above are bit-identical, so this is no round-off)
+    # (the flat network's runs above agree to round-off, so this is no round-off)
     assert 5e-8 < rel(c.error_scale, d.error_scale) < 2e-7
