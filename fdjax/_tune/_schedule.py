@@ -621,11 +621,10 @@ def load_schedule(path: str | os.PathLike, *,
     check_drive(meta, drive, where, meta_path)
     schedule = read_leaves(leaves, like, where, "a schedule")
     # the JSON's gains are e^θ as the saving backend rounded it (XLA's exp and libm's differ
-    # by up to 2 ulp): compared in θ, to 1e-12
+    # by up to 2 ulp): compared to 1e-12 relative
     gains = {k: float(getattr(schedule.loop, k)) for k in meta["gains"]}
-    if not all(abs(math.log(abs(gains[k])) - math.log(abs(float(v)))) <= 1e-12
-               if gains[k] != 0 and float(v) != 0 else gains[k] == float(v)
-               for k, v in meta["gains"].items()):
+    if not np.allclose(list(gains.values()), [float(v) for v in meta["gains"].values()],
+                       rtol=1e-12, atol=0.0):
         raise ValueError(f"`{where}`: {leaves!r} does not hold the leaves its JSON describes: "
                          f"gains {gains}, where {meta_path!r} has {meta['gains']} (the leaves "
                          "of another schedule, or an edited JSON)")
