@@ -435,9 +435,12 @@ def loop_margins(
     response (its polynomial method on the discrete system's transfer function can be far off at
     this order).  The open loops are sampled on ``freq_hz``, every crossing is bracketed there and,
     for a twin (a drive or a StateSpace), refined by safeguarded Newton steps on the model's own
-    L to round-off; the margins are differentiable through the refined crossings.  For an FRF
-    array they are interpolated (:func:`stability_margins`).  The grid must bracket every
-    crossing (a few hundred points per decade around lightly damped modes).
+    L to round-off; the margins are differentiable through the refined crossings.  On a twin,
+    two crossings that no grid point separates (a resonance lifting |L| above 1, or turning the
+    phase past −180°, and back between grid points) are found from the extremum of |L| or of
+    the phase between them.  For an FRF array they are interpolated
+    (:func:`stability_margins`), and the grid must bracket every crossing (a few hundred points
+    per decade around lightly damped modes).
 
     Margins are read from the open loops alone; they do not say whether the closed loop is
     stable (a loop whose Nyquist curve encircles −1 has margins too).  Ask

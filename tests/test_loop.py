@@ -371,6 +371,44 @@ def test_grid_margins_converge_at_second_order(twin):
     assert np.all(np.array(err[1]) < 1e-5), err
 
 
+@pytest.mark.parametrize("criterion", ["phase crossover", "gain crossover"])
+def test_two_crossings_between_grid_points_are_found(criterion):
+    """A resonance can carry arg L past −180° (or |L| above 1) and back between two grid
+    points: the grid sees no crossing.  The model's extremum between them is refined first and
+    the two crossings beside it are found (here a Gaussian bump in log ω of width 0.004, on a
+    grid of 2 % steps, crossing where exp(−x²) = 1/2, x = ±√ln 2).  Measured: the crossings to
+    3e-16 in log ω, the margins to round-off."""
+    from fdjax._control._margins import model_margins
+
+    u = np.log(TWO_PI * np.geomspace(1.0, 4000.0, 420))
+    k = np.searchsorted(u, np.log(TWO_PI * 173.0))
+    u_c, width = 0.5 * (u[k - 1] + u[k]), 0.004  # halfway between two grid points
+
+    def L_fn(bump_height, w):
+        bump = jnp.exp(-(((jnp.log(w) - u_c) / width) ** 2))
+        if criterion == "phase crossover":  # |L| = 1/2, arg(−L) = 10° − 20° bump
+            return (0.5 * jnp.exp(jax.lax.complex(0.0, np.pi + np.radians(10.0)
+                                                  - bump_height * bump)),)
+        return (jnp.exp(jax.lax.complex(-0.1 + bump_height * bump, -0.5 * np.pi)),)  # −90°
+
+    height = np.radians(20.0) if criterion == "phase crossover" else 0.2
+    m = jax.jit(lambda h: model_margins(jnp.asarray(u), L_fn(h, jnp.exp(jnp.asarray(u))),
+                                        L_fn, h)[0])(height)
+    first = np.exp(u_c - width * np.sqrt(np.log(2.0))) / TWO_PI
+    if criterion == "phase crossover":
+        np.testing.assert_allclose(float(m.gain_margin), 2.0, rtol=1e-14)
+        np.testing.assert_allclose(float(m.phase_crossover_hz), first, rtol=1e-13)
+        assert np.isinf(float(m.phase_margin_deg))  # |L| < 1 everywhere
+    else:
+        np.testing.assert_allclose(float(m.phase_margin_deg), 90.0, rtol=1e-13)
+        np.testing.assert_allclose(float(m.gain_crossover_hz), first, rtol=1e-13)
+        assert np.isinf(float(m.gain_margin))  # arg L = −90° everywhere
+    # a bump that stays short of the crossing hides nothing
+    m = jax.jit(lambda h: model_margins(jnp.asarray(u), L_fn(h, jnp.exp(jnp.asarray(u))),
+                                        L_fn, h)[0])(0.9 * height / 2)
+    assert np.isinf(float(m.gain_margin)) and np.isinf(float(m.phase_margin_deg))
+
+
 def test_grid_modulus_margin_next_to_an_unresolved_resonance():
     """The reference controller's continuous speed loop passes 0.07 from −1 at the screw's
     2.78 kHz axial mode, a resonance narrower than a 1500-point grid's spacing (12 Hz).  The

@@ -125,6 +125,17 @@ def test_pid_tuned_at_115_mm_loses_its_margin_toward_the_screw_end(drive):
     assert 5.8 < g[0] < 6.2 and 0.4 < g[1] < 1.0, g
     m = fdjax.loop_margins(pid, drive, F, position_m=np.array([Y, 0.7])).plant_input
     np.testing.assert_allclose(np.asarray(m.gain_margin_db), g, atol=0.02)
+    # at 115 mm the saddle's mode lifts |L| above 1 between 173.13 and 174.59 Hz: a 400-point
+    # grid (2 % steps) has no point there, and its margins are the 6000-point grid's all the
+    # same (its phase margin had been +88°, from the 14 Hz crossover; measured equal to 2e-14)
+    f = np.geomspace(1.0, 3990.0, 400)
+    assert not np.any((f > 173.1) & (f < 174.6))  # the crossings: 173.13, 174.59 Hz
+    coarse = fdjax.loop_margins(pid, drive, f, position_m=Y)
+    pm = float(coarse.plant_input.phase_margin_deg)
+    assert -57.0 < pm < -56.0, pm
+    np.testing.assert_allclose(pm, float(m.phase_margin_deg[0]), rtol=1e-10)
+    np.testing.assert_allclose(float(coarse.plant_input.gain_crossover_hz),
+                               float(m.gain_crossover_hz[0]), rtol=1e-12)
 
 
 def test_gain_headroom_checks_its_arguments(drive):

@@ -9,7 +9,9 @@ Crossings and the least |1 + L| are found on the frequency grid (log-frequency i
 of log L within a grid interval) and, when L is a model (a function of ω), refined by
 safeguarded Newton steps on the model's own L to round-off; the result is differentiable
 through the refined crossing (implicit function theorem: one last Newton step carries the
-gradient).  The same algorithm serves continuous loops (L(iω)) and sampled ones (L(e^{iωT}),
+gradient).  On a model, a pair of crossings that no grid point separates (a resonance that
+carries |L| above 1, or arg L past −180°, and back between two grid points) is found from the
+extremum of |L| or arg L between them.  The same algorithm serves continuous loops (L(iω)) and sampled ones (L(e^{iωT}),
 ω below the Nyquist frequency).
 """
 
@@ -149,6 +151,27 @@ def _grid_candidates(u, L):
     return gm, pm, sm
 
 
+def _hidden_pairs(u, L):
+    """Grid points where a crossing equation comes closest to zero without crossing it in
+    either interval beside them: a resonance can carry |L| above 1 (or arg L past −180°) and
+    back between two grid points.  Per crossing criterion (phase crossover, gain crossover):
+    (valid, bracket lo, bracket hi, sign of the equation there, score |f| at the grid point).
+    The model's extremum of the equation in the bracket decides whether a pair is hidden
+    there (:func:`model_margins`)."""
+    lm = jnp.log(jnp.abs(L))
+    out = []
+    for f in (jnp.angle(-L), lm):
+        fm, f0, fp = f[:-2], f[1:-1], f[2:]
+        a = jnp.abs(f)
+        am, a0, ap = a[:-2], a[1:-1], a[2:]
+        same = (jnp.sign(fm) == jnp.sign(f0)) & (jnp.sign(fp) == jnp.sign(f0)) & (f0 != 0)
+        # the phase equation wraps at ±π, far from the negative real axis
+        near = jnp.isfinite(lm[1:-1]) & (a0 < 0.5 * math.pi)
+        valid = same & near & (a0 <= am) & (a0 < ap)
+        out.append((valid, u[:-2], u[2:], jnp.sign(f0), a0))
+    return out
+
+
 def _pick(valid, score):
     s = jnp.where(valid, score, jnp.inf)
     k = jnp.argmin(s)
@@ -199,12 +222,16 @@ def _equations(L, L1):
 
 
 def _criteria(L, L1, L2):
-    """(f, df/dv) of the crossing equations (:func:`_equations`)."""
+    """(f, df/dv) of the crossing equations (:func:`_equations`), then of the equations of
+    their extrema in v: d arg(−L)/dv = 0 and d log|L|/dv = 0 (stacked (5,))."""
     r = L1 / L
+    dr = L2 / L - r * r
+    f = jnp.concatenate([_equations(L, L1), jnp.stack([jnp.imag(r), jnp.real(r)])])
     df = jnp.stack([
         jnp.imag(r), jnp.real(r), jnp.abs(L1) ** 2 + jnp.real((1.0 + L) * jnp.conj(L2)),
+        jnp.imag(dr), jnp.real(dr),
     ])
-    return _equations(L, L1), df
+    return f, df
 
 
 def _values(L):
@@ -222,14 +249,21 @@ def model_margins(u, Ls, L_fn, params) -> list[Margins]:
 
     Per loop and criterion the best ``_N_CANDIDATES`` grid crossings are bracketed and refined
     together (one vectorised, safeguarded Newton iteration over all of them: bisection when a
-    step leaves its bracket) with the parameters' gradients stopped.  One last Newton step with
-    live parameters, ``v* = v − f(v; θ)/f'(v)``, carries the derivative of the crossing
-    (implicit function theorem: dv*/dθ = −f_θ/f_v), and L at v* is its first-order expansion
-    from v (exact to round-off, with the right derivative).  Then the best is chosen again.
+    step leaves its bracket) with the parameters' gradients stopped.  Crossings the grid does
+    not see, two inside one pair of grid intervals (a resonance that lifts |L| above 1 or turns
+    arg L past −180° and back between grid points), are looked for first: at the best
+    ``_N_CANDIDATES`` grid points where the equation comes closest to zero without crossing,
+    its extremum is refined on the model the same way; where the extremum lies across zero, the
+    two crossings on either side of it join the candidates.  One last Newton step with live
+    parameters, ``v* = v − f(v; θ)/f'(v)``, carries the derivative of the crossing (implicit
+    function theorem: dv*/dθ = −f_θ/f_v), and L at v* is its first-order expansion from v
+    (exact to round-off, with the right derivative).  Then the best is chosen again.
     """
     frozen = jax.tree_util.tree_map(jax.lax.stop_gradient, params)
     k = min(_N_CANDIDATES, u.shape[0] - 1)
+    k_pairs = min(_N_CANDIDATES, u.shape[0] - 2)
     lanes = []  # (loop, criterion, valid, u0, lo, hi, sign at lo) per candidate
+    extrema = []  # (loop, criterion, valid, lo, hi, sign of the crossing equation there)
     for i, L in enumerate(Ls):
         for c, (valid, u_est, lo, hi, score, _, sign) in enumerate(_grid_candidates(u, L)):
             _, idx = jax.lax.top_k(-jnp.where(valid, score, jnp.inf), k)
@@ -237,30 +271,80 @@ def model_margins(u, Ls, L_fn, params) -> list[Margins]:
                 jnp.full(k, i), jnp.full(k, c), valid[idx], u_est[idx], lo[idx], hi[idx],
                 sign[idx],
             ))
-    loop_i, crit, valid, u0, lo, hi, sign_lo = (jnp.concatenate(x) for x in zip(*lanes))
-    ok = lo < hi  # the ends of the grid (modulus margin) are not refined
+        if k_pairs > 0:
+            for c, (valid, lo, hi, sign, score) in enumerate(_hidden_pairs(u, L)):
+                _, idx = jax.lax.top_k(-jnp.where(valid, score, jnp.inf), k_pairs)
+                extrema.append((jnp.full(k_pairs, i), jnp.full(k_pairs, c), valid[idx],
+                                lo[idx], hi[idx], sign[idx]))
 
     def f_at(p, v, i, c):
         f, df = _criteria(*(x[i] for x in _jet(L_fn, p, v)))
-        return f[c], df[c]
+        return f[c], df[c], f[jnp.where(c >= 3, c - 3, c)]
+
+    loop_i, crit, valid, u0, lo, hi, sign_lo = (jnp.concatenate(x) for x in zip(*lanes))
+    ok = lo < hi  # the ends of the grid (modulus margin) are not refined
+    n_cross = loop_i.shape[0]
+    if extrema:
+        # the extrema of the equations f (criterion + 3: their derivatives change sign from
+        # −sign(f) to sign(f)), refined beside the crossings; then the pairs of crossings on
+        # either side of those that lie across zero, in [lo, v_e] and [v_e, hi]
+        e_loop, e_crit, e_valid, e_lo, e_hi, e_sign = (jnp.concatenate(x) for x in zip(*extrema))
+        z = jnp.zeros_like(e_lo)
+        cat = lambda *x: jnp.concatenate(x)
+        loop_i = cat(loop_i, e_loop, e_loop, e_loop)
+        crit = cat(crit, e_crit + 3, e_crit, e_crit)
+        u0 = cat(u0, 0.5 * (e_lo + e_hi), z, z)
+        lo, hi = cat(lo, e_lo, z, z), cat(hi, e_hi, z, z)
+        sign_lo = cat(sign_lo, -e_sign, e_sign, -e_sign)
+        ok = cat(ok, e_valid, z > 0, z > 0)
+    n_ext = (loop_i.shape[0] - n_cross) // 3
 
     # A fixed number of steps (the grid start is O(Δu²) close, so a few quadratic steps reach
-    # round-off), in a loop so that the jets of L are compiled once.
+    # round-off), in a loop so that the jets of L are compiled once.  With extrema, a second
+    # round of as many steps refines the pairs of crossings they reveal (the first round's
+    # lanes keep their results).
     def newton(k, state):
-        v, a, b, _ = state
-        fv, dfv = jax.vmap(lambda v, i, c: f_at(frozen, v, i, c))(v, loop_i, crit)
+        v, a, b, df, ok, fc = state
+        if n_ext:
+            # at the start of the second round, the pairs' brackets from the refined extrema
+            # v_e, with the crossing equation f and f'' there (the first round's last pass);
+            # each crossing starts where the parabola of f through v_e crosses zero
+            ext, pairs = slice(n_cross, n_cross + n_ext), slice(n_cross + n_ext, None)
+            v_e, sign, f_e, f2 = v[ext], -sign_lo[ext], fc[ext], df[ext]
+            hidden = ok[ext] & (jnp.sign(f_e) == -sign) & (v_e > lo[ext]) & (v_e < hi[ext])
+            d = jnp.sqrt(jnp.abs(2.0 * f_e / jnp.where(f2 != 0, f2, 1.0)))
+            pa, pb = jnp.concatenate([lo[ext], v_e]), jnp.concatenate([v_e, hi[ext]])
+            guess = jnp.clip(jnp.concatenate([v_e - d, v_e + d]), pa, pb)
+            start = k == _NEWTON_STEPS + 1
+            a = a.at[pairs].set(jnp.where(start, pa, a[pairs]))
+            b = b.at[pairs].set(jnp.where(start, pb, b[pairs]))
+            v = v.at[pairs].set(jnp.where(start, guess, v[pairs]))
+            ok = ok.at[pairs].set(jnp.where(start, jnp.concatenate([hidden, hidden]), ok[pairs]))
+        fv, dfv, fc = jax.vmap(lambda v, i, c: f_at(frozen, v, i, c))(v, loop_i, crit)
+        in_pair = lane >= n_cross + n_ext
+        active = in_pair == (k > _NEWTON_STEPS)  # the round a lane belongs to
         left = jnp.sign(fv) == sign_lo  # the root lies in [v, b]
-        a, b = jnp.where(left, v, a), jnp.where(left, b, v)
+        a, b = jnp.where(active & left, v, a), jnp.where(active & ~left, v, b)
         step = v - fv / dfv
-        inside = (step > a) & (step < b) & jnp.isfinite(step)
+        # (a converged v is an end of its bracket, and its step rounds to v: kept)
+        inside = (step >= a) & (step <= b) & jnp.isfinite(step)
         new = jnp.where((fv == 0) | ~ok, v, jnp.where(inside, step, 0.5 * (a + b)))
-        # the last pass only evaluates: f'(v) at the refined crossing, for the final step
-        return jnp.where(k < _NEWTON_STEPS, new, v), a, b, dfv
+        # the last pass of a round only evaluates: f'(v) at the refined root, for the final step
+        last = (k == _NEWTON_STEPS) | (k == 2 * _NEWTON_STEPS + 1)
+        v = jnp.where(active & ~last, new, v)
+        return v, a, b, jnp.where(active, dfv, df), ok, fc
 
+    rounds = 2 if n_ext else 1
+    lane = jnp.arange(loop_i.shape[0])
     v0 = jnp.clip(u0, lo, hi)
-    v, _, _, df = jax.lax.fori_loop(0, _NEWTON_STEPS + 1, newton,
-                                    (v0, lo, hi, jnp.ones_like(v0)))
+    one = jnp.ones_like(v0)
+    v, _, _, df, ok, *_ = jax.lax.fori_loop(0, rounds * (_NEWTON_STEPS + 1), newton,
+                                            (v0, lo, hi, one, ok, one))
     v, df = jax.lax.stop_gradient(v), jax.lax.stop_gradient(df)
+    # the extrema are no candidates
+    valid = jnp.concatenate([valid, jnp.zeros(n_ext, bool), ok[n_cross + n_ext:]])
+    ok = ok & (crit < 3)
+    crit = jnp.where(crit >= 3, 0, crit)
 
     def final(v, i, c, ok, df):
         L, L1 = (x[i] for x in _jet1(L_fn, params, v))
@@ -274,12 +358,7 @@ def model_margins(u, Ls, L_fn, params) -> list[Margins]:
     for i in range(len(Ls)):
         per = []
         for c in range(3):
-            sl = slice((3 * i + c) * k, (3 * i + c + 1) * k)
-            j, found = _pick(valid[sl], score[sl])
-            per.append((found, v[sl][j], value[sl][j]))
+            j, found = _pick(valid & (loop_i == i) & (crit == c), score)
+            per.append((found, v[j], value[j]))
         out.append(_finish(*per))
     return out
-
-
-
-
