@@ -11,8 +11,8 @@ safeguarded Newton steps on the model's own L to round-off; the result is differ
 through the refined crossing (implicit function theorem: one last Newton step carries the
 gradient).  On a model, a pair of crossings that no grid point separates (a resonance that
 carries |L| above 1, or arg L past −180°, and back between two grid points) is found from the
-extremum of |L| or arg L between them.  The same algorithm serves continuous loops (L(iω)) and sampled ones (L(e^{iωT}),
-ω below the Nyquist frequency).
+extremum of |L| or arg L between them.  The same algorithm serves continuous loops (L(iω))
+and sampled ones (L(e^{iωT}), ω below the Nyquist frequency).
 """
 
 from __future__ import annotations
@@ -28,6 +28,9 @@ __all__ = ["Margins", "grid_margins", "model_margins"]
 
 _TWO_PI = 2.0 * math.pi
 _N_CANDIDATES = 3  # crossings refined per criterion (the best ones on the grid)
+# grid points searched per criterion for two crossings between them and their neighbours (the
+# ones where the crossing equation comes closest to zero)
+_N_HIDDEN = 2
 # Safeguarded Newton (or bisection) steps from the grid estimate, in one compiled loop (more steps
 # cost run time, not compilation); then one step with gradients.  Near a sharp resonance the
 # grid estimate can sit several bisections away: 3 steps left crossings at 1e-8 whose value
@@ -261,7 +264,7 @@ def model_margins(u, Ls, L_fn, params) -> list[Margins]:
     """
     frozen = jax.tree_util.tree_map(jax.lax.stop_gradient, params)
     k = min(_N_CANDIDATES, u.shape[0] - 1)
-    k_pairs = min(_N_CANDIDATES, u.shape[0] - 2)
+    k_pairs = min(_N_HIDDEN, u.shape[0] - 2)
     lanes = []  # (loop, criterion, valid, u0, lo, hi, sign at lo) per candidate
     extrema = []  # (loop, criterion, valid, lo, hi, sign of the crossing equation there)
     for i, L in enumerate(Ls):
@@ -282,69 +285,76 @@ def model_margins(u, Ls, L_fn, params) -> list[Margins]:
         return f[c], df[c], f[jnp.where(c >= 3, c - 3, c)]
 
     loop_i, crit, valid, u0, lo, hi, sign_lo = (jnp.concatenate(x) for x in zip(*lanes))
-    ok = lo < hi  # the ends of the grid (modulus margin) are not refined
+    ok = ok_cross = lo < hi  # the ends of the grid (modulus margin) are not refined
     n_cross = loop_i.shape[0]
+    cat = lambda *x: jnp.concatenate(x)
     if extrema:
-        # the extrema of the equations f (criterion + 3: their derivatives change sign from
-        # −sign(f) to sign(f)), refined beside the crossings; then the pairs of crossings on
-        # either side of those that lie across zero, in [lo, v_e] and [v_e, hi]
-        e_loop, e_crit, e_valid, e_lo, e_hi, e_sign = (jnp.concatenate(x) for x in zip(*extrema))
-        z = jnp.zeros_like(e_lo)
-        cat = lambda *x: jnp.concatenate(x)
-        loop_i = cat(loop_i, e_loop, e_loop, e_loop)
-        crit = cat(crit, e_crit + 3, e_crit, e_crit)
-        u0 = cat(u0, 0.5 * (e_lo + e_hi), z, z)
-        lo, hi = cat(lo, e_lo, z, z), cat(hi, e_hi, z, z)
-        sign_lo = cat(sign_lo, -e_sign, e_sign, -e_sign)
-        ok = cat(ok, e_valid, z > 0, z > 0)
-    n_ext = (loop_i.shape[0] - n_cross) // 3
+        # The extrema of the equations f (criterion + 3: their derivatives change sign from
+        # −sign(f) to sign(f)) are refined beside the crossings, in a first round of steps;
+        # then, in the same slots, the pairs of crossings on either side of those that lie
+        # across zero, in [lo, v_e] and [v_e, hi].
+        e_loop, e_crit, e_valid, e_lo, e_hi, e_sign = (cat(*x) for x in zip(*extrema))
+        n_ext = e_loop.shape[0]
+        pad = max(0, 2 * n_ext - n_cross - n_ext)
+        z = jnp.zeros(pad)
+        slots = (cat(loop_i, e_loop, z.astype(loop_i.dtype)), cat(crit, e_crit + 3,
+                 z.astype(crit.dtype)), cat(sign_lo, -e_sign, z))
+        u0, lo, hi = cat(u0, 0.5 * (e_lo + e_hi), z), cat(lo, e_lo, z), cat(hi, e_hi, z)
+        ok = cat(ok, e_valid, z > 0)
+    else:
+        n_ext = 0
+        slots = (loop_i, crit, sign_lo)
+    n_slots = slots[0].shape[0]
 
     # A fixed number of steps (the grid start is O(Δu²) close, so a few quadratic steps reach
-    # round-off), in a loop so that the jets of L are compiled once.  With extrema, a second
-    # round of as many steps refines the pairs of crossings they reveal (the first round's
-    # lanes keep their results).
+    # round-off), in a loop so that the jets of L are compiled once.
     def newton(k, state):
-        v, a, b, df, ok, fc = state
+        (v, a, b, df, ok, fc, (loop_s, crit_s, sign_s)), first = state
         if n_ext:
-            # at the start of the second round, the pairs' brackets from the refined extrema
-            # v_e, with the crossing equation f and f'' there (the first round's last pass);
-            # each crossing starts where the parabola of f through v_e crosses zero
-            ext, pairs = slice(n_cross, n_cross + n_ext), slice(n_cross + n_ext, None)
-            v_e, sign, f_e, f2 = v[ext], -sign_lo[ext], fc[ext], df[ext]
-            hidden = ok[ext] & (jnp.sign(f_e) == -sign) & (v_e > lo[ext]) & (v_e < hi[ext])
+            # at the start of the second round: the first round's crossings are kept, and the
+            # slots take the pairs, from the refined extrema v_e with the crossing equation f
+            # and f'' there (the first round's last pass); each crossing of a pair starts where
+            # the parabola of f through v_e crosses zero
+            ext = slice(n_cross, n_cross + n_ext)
+            v_e, sign, f_e, f2 = v[ext], e_sign, fc[ext], df[ext]
+            hidden = ok[ext] & (jnp.sign(f_e) == -sign) & (v_e > e_lo) & (v_e < e_hi)
             d = jnp.sqrt(jnp.abs(2.0 * f_e / jnp.where(f2 != 0, f2, 1.0)))
-            pa, pb = jnp.concatenate([lo[ext], v_e]), jnp.concatenate([v_e, hi[ext]])
-            guess = jnp.clip(jnp.concatenate([v_e - d, v_e + d]), pa, pb)
-            start = k == _NEWTON_STEPS + 1
-            a = a.at[pairs].set(jnp.where(start, pa, a[pairs]))
-            b = b.at[pairs].set(jnp.where(start, pb, b[pairs]))
-            v = v.at[pairs].set(jnp.where(start, guess, v[pairs]))
-            ok = ok.at[pairs].set(jnp.where(start, jnp.concatenate([hidden, hidden]), ok[pairs]))
-        fv, dfv, fc = jax.vmap(lambda v, i, c: f_at(frozen, v, i, c))(v, loop_i, crit)
-        in_pair = lane >= n_cross + n_ext
-        active = in_pair == (k > _NEWTON_STEPS)  # the round a lane belongs to
-        left = jnp.sign(fv) == sign_lo  # the root lies in [v, b]
-        a, b = jnp.where(active & left, v, a), jnp.where(active & ~left, v, b)
+            zp = jnp.zeros(n_slots - 2 * n_ext)
+            pa, pb = cat(e_lo, v_e, zp), cat(v_e, e_hi, zp)
+            pairs = (cat(jnp.clip(cat(v_e - d, v_e + d), pa[:2 * n_ext], pb[:2 * n_ext]), zp),
+                     pa, pb, df, cat(hidden, hidden, zp > 0), fc,
+                     (cat(e_loop, e_loop, zp.astype(e_loop.dtype)),
+                      cat(e_crit, e_crit, zp.astype(e_crit.dtype)), cat(sign, -sign, zp)))
+            now = (v, a, b, df, ok, fc, (loop_s, crit_s, sign_s))
+            switch = k == _NEWTON_STEPS + 1
+            first = jax.tree_util.tree_map(lambda x, y: jnp.where(switch, y, x), first,
+                                           (v[:n_cross], df[:n_cross]))
+            v, a, b, df, ok, fc, (loop_s, crit_s, sign_s) = jax.tree_util.tree_map(
+                lambda x, y: jnp.where(switch, y, x), now, pairs)
+        fv, dfv, fc = jax.vmap(lambda v, i, c: f_at(frozen, v, i, c))(v, loop_s, crit_s)
+        left = jnp.sign(fv) == sign_s  # the root lies in [v, b]
+        a, b = jnp.where(left, v, a), jnp.where(left, b, v)
         step = v - fv / dfv
         # (a converged v is an end of its bracket, and its step rounds to v: kept)
         inside = (step >= a) & (step <= b) & jnp.isfinite(step)
         new = jnp.where((fv == 0) | ~ok, v, jnp.where(inside, step, 0.5 * (a + b)))
         # the last pass of a round only evaluates: f'(v) at the refined root, for the final step
         last = (k == _NEWTON_STEPS) | (k == 2 * _NEWTON_STEPS + 1)
-        v = jnp.where(active & ~last, new, v)
-        return v, a, b, jnp.where(active, dfv, df), ok, fc
+        v = jnp.where(last, v, new)
+        return (v, a, b, dfv, ok, fc, (loop_s, crit_s, sign_s)), first
 
-    rounds = 2 if n_ext else 1
-    lane = jnp.arange(loop_i.shape[0])
     v0 = jnp.clip(u0, lo, hi)
     one = jnp.ones_like(v0)
-    v, _, _, df, ok, *_ = jax.lax.fori_loop(0, rounds * (_NEWTON_STEPS + 1), newton,
-                                            (v0, lo, hi, one, ok, one))
+    state = ((v0, lo, hi, one, ok, one, slots), (v0[:n_cross], one[:n_cross]))
+    (v, _, _, df, ok_s, _, _), (v1, df1) = jax.lax.fori_loop(
+        0, (2 if n_ext else 1) * (_NEWTON_STEPS + 1), newton, state)
+    if n_ext:  # the first round's crossings, then the pairs
+        v, df = cat(v1, v[:2 * n_ext]), cat(df1, df[:2 * n_ext])
+        loop_i, crit = cat(loop_i, e_loop, e_loop), cat(crit, e_crit, e_crit)
+        valid, ok = cat(valid, ok_s[:2 * n_ext]), cat(ok_cross, ok_s[:2 * n_ext])
+    else:
+        ok = ok_cross
     v, df = jax.lax.stop_gradient(v), jax.lax.stop_gradient(df)
-    # the extrema are no candidates
-    valid = jnp.concatenate([valid, jnp.zeros(n_ext, bool), ok[n_cross + n_ext:]])
-    ok = ok & (crit < 3)
-    crit = jnp.where(crit >= 3, 0, crit)
 
     def final(v, i, c, ok, df):
         L, L1 = (x[i] for x in _jet1(L_fn, params, v))
