@@ -135,11 +135,15 @@ def test_tune_newton_lowers_the_objective_with_the_exact_hessian():
     assert np.all(np.asarray(again.terms.total) < 0.9 * np.asarray(again.history)[0])
     # the exact Hessian every other step, SR1 updates between: J falls as far in four steps.
     # With a chunk of one step, below hessian_every, the steps run as calls of gradient steps
-    # and the exact step alone
-    sr1 = fdjax.tune_newton(par, obj, drive, pos, start, steps=4, hessian_every=2, chunk=1)
+    # and the exact step alone; the exact step in the program above (a chunk below the
+    # default runs in the default chunk's programs): only the gradient steps compile
+    with compilations() as names:
+        sr1 = fdjax.tune_newton(par, obj, drive, pos, start, steps=4, hessian_every=2, chunk=1)
+    assert not [n for n in names if "_run_cycles" in n], names
+    assert [n for n in names if "_run_gradient_steps" in n], names
     assert np.all(np.asarray(sr1.terms.total) < 0.6 * np.asarray(sr1.history)[0])  # 0.57, 0.17
-    # its start, evaluated alone (the steps' program for its chunk, with no step), is the
-    # first run's (another compiled program: measured equal)
+    # its start, evaluated alone (the steps' program with no step), is the first run's (the
+    # same program, called for the start alone: measured equal)
     np.testing.assert_allclose(np.asarray(sr1.history)[0], h[0], rtol=1e-14)
     # the exact Hessian at the start only (hessian_every past the steps): the start alone,
     # then gradient steps with SR1 updates, in the programs of the run above (the history is

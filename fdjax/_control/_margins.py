@@ -255,7 +255,7 @@ def model_margins(u, Ls, L_fn, params) -> list[Margins]:
     step leaves its bracket) with the parameters' gradients stopped.  Crossings the grid does
     not see, two inside one pair of grid intervals (a resonance that lifts |L| above 1 or turns
     arg L past −180° and back between grid points), are looked for first: at the best
-    ``_N_CANDIDATES`` grid points where the equation comes closest to zero without crossing,
+    ``_N_HIDDEN`` grid points where the equation comes closest to zero without crossing,
     its extremum is refined on the model the same way; where the extremum lies across zero, the
     two crossings on either side of it join the candidates.  One last Newton step with live
     parameters, ``v* = v − f(v; θ)/f'(v)``, carries the derivative of the crossing (implicit
@@ -295,7 +295,7 @@ def model_margins(u, Ls, L_fn, params) -> list[Margins]:
         # across zero, in [lo, v_e] and [v_e, hi].
         e_loop, e_crit, e_valid, e_lo, e_hi, e_sign = (cat(*x) for x in zip(*extrema))
         n_ext = e_loop.shape[0]
-        pad = max(0, 2 * n_ext - n_cross - n_ext)
+        pad = max(0, n_ext - n_cross)  # the pairs take 2 n_ext slots
         z = jnp.zeros(pad)
         slots = (cat(loop_i, e_loop, z.astype(loop_i.dtype)), cat(crit, e_crit + 3,
                  z.astype(crit.dtype)), cat(sign_lo, -e_sign, z))

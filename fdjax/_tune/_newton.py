@@ -56,6 +56,7 @@ __all__ = ["tune_newton", "trust_region_step"]
 
 _ACCEPT = 1e-4
 _BISECTIONS = 100
+_DEFAULT_CHUNK = 10  # steps per compiled call
 
 
 def trust_region_step(
@@ -287,7 +288,7 @@ def tune_newton(
     shrink: float = 0.25,
     hessian_every: int = 1,
     hessian: str = "full",
-    chunk: int = 10,
+    chunk: int = _DEFAULT_CHUNK,
     progress: bool = False,
 ) -> LocalTuning:
     r"""Tune one controller per table position by trust-region Newton steps with the exact
@@ -381,8 +382,10 @@ def tune_newton(
     cycles_per_call = -(-chunk // every) if every <= chunk else 0
     # the cycles' history: a call of whole cycles (every ≤ chunk) fills the start's row and
     # cycles·every ≤ chunk + every − 1 ≤ 2·chunk − 1 rows, the exact step alone or the start
-    # alone one: 2·chunk rows, one program for any hessian_every and count of steps
-    rows = 2 * chunk
+    # alone one: 2·chunk rows, one program for any hessian_every and count of steps.  A chunk
+    # below the default runs in the default chunk's programs (its histories are sized for
+    # it), and the gradient steps' history in one program for any hessian_every.
+    rows = 2 * max(chunk, _DEFAULT_CHUNK)
 
     def cycles(st, n_cycles, every, split, quasi, start):
         return _run_cycles(parameterisation, objective, drive, y, st, jnp.asarray(n_cycles),
@@ -410,7 +413,7 @@ def tune_newton(
         else:
             n = min(exact_at, steps, done + chunk) - done
             st, hist = _run_gradient_steps(parameterisation, objective, drive, y, st,
-                                           jnp.asarray(n), rows=min(every - 1, chunk), **trust)
+                                           jnp.asarray(n), rows=rows // 2, **trust)
             program = "gradient"
         assert n + (not started) <= rows  # (a write past the history would be dropped)
         history.append(np.asarray(hist)[:n + (not started)])  # waits for the steps
