@@ -339,7 +339,8 @@ def tune_newton(
             steps and the step with the exact Hessian alone (the progress bar is drawn between
             calls).  The steps of a call run in one compiled loop, which computes what does not
             depend on θ (the twins, their zero-order holds and responses on the frequency grid,
-            the reference) once per call.
+            the reference) once per call; a chunk below 10 runs in the programs of a chunk of
+            10 (no new compilation).
         progress: a progress bar with the objective's mean and max after each call (stderr).
 
     Returns:
