@@ -381,7 +381,8 @@ def test_reference_controller_names_its_arguments():
 def test_first_use_inside_a_users_jit_leaks_no_tracer():
     """fdjax loads its modules on first use; when that use is inside a jitted function, the
     module's constants (the default Servo()) were built as tracers of that trace, and the
-    next trace failed with an UnexpectedTracerError.  A fresh process, as a user's."""
+    next trace failed with an UnexpectedTracerError.  A fresh process, as a user's (an open
+    loop: the cheapest program of the module that first raised it)."""
     import subprocess
     import sys
 
@@ -390,8 +391,8 @@ def test_first_use_inside_a_users_jit_leaks_no_tracer():
         "f = np.geomspace(5, 3900, 64)\n"
         "@eqx.filter_jit\n"
         "def gm(c, d, p):\n"
-        "    return fdjax.loop_margins(c, d, f, position_m=p,\n"
-        "        twin=fdjax.TwinOptions(kept_modes=7)).speed.gain_margin_db\n"
+        "    return jnp.abs(fdjax.open_loop(c, d, f, position_m=p,\n"
+        "        twin=fdjax.TwinOptions(kept_modes=7)).speed[..., 10])\n"
         "d, c = fdjax.reference_drive(), fdjax.DoubleLoop()\n"
         "a = gm(c, d, 0.3)\n"
         "v = gm(c, d, jnp.array([0.2, 0.3]))  # a second trace: it failed here\n"
