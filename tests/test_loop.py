@@ -371,42 +371,57 @@ def test_grid_margins_converge_at_second_order(twin):
     assert np.all(np.array(err[1]) < 1e-5), err
 
 
-@pytest.mark.parametrize("criterion", ["phase crossover", "gain crossover"])
-def test_two_crossings_between_grid_points_are_found(criterion):
+def test_two_crossings_between_grid_points_are_found():
     """A resonance can carry arg L past −180° (or |L| above 1) and back between two grid
-    points: the grid sees no crossing.  The model's extremum between them is refined first and
-    the two crossings beside it are found (here a Gaussian bump in log ω of width 0.004, on a
-    grid of 2 % steps, crossing where exp(−x²) = 1/2, x = ±√ln 2).  Measured: the crossings to
-    3e-16 in log ω, the margins to round-off."""
+    points: the grid sees no crossing.  The model's extremum between them is refined first,
+    then the two crossings beside it and the least |1 + L| near it.  Three loops in one call,
+    each a Gaussian bump b(u) in log ω of width 0.004 halfway between two grid points (2 %
+    steps), tilted by T(u) = tanh((u − u_c)/0.004) so that the right crossing of each pair
+    (b = 1/2, (u − u_c)/0.004 = √ln 2) holds the better margin:
+    0. arg(−L) = 10° − 20° b crosses zero, |L| = e^{0.3 T}/2 < 1;
+    1. log|L| = −0.1 + 0.2 b crosses zero, arg L = −90° − 0.5 T rad;
+    2. L = −(0.95 + 0.04 b) e^{i(0.3 − 0.35 b)}: a phase crossover pair at b = 6/7 and |1 + L|
+       down to 0.016 at the bump (0.296 at every grid point).
+    Measured: the crossings and margins to 1e-15, the modulus margin to 6e-15 of a 8e-12-spaced
+    grid's least value around it.  The old search found neither pair nor that minimum."""
     from fdjax._control._margins import model_margins
 
     u = np.log(TWO_PI * np.geomspace(1.0, 4000.0, 420))
     k = np.searchsorted(u, np.log(TWO_PI * 173.0))
     u_c, width = 0.5 * (u[k - 1] + u[k]), 0.004  # halfway between two grid points
+    cpx = jax.lax.complex
 
-    def L_fn(bump_height, w):
-        bump = jnp.exp(-(((jnp.log(w) - u_c) / width) ** 2))
-        if criterion == "phase crossover":  # |L| = 1/2, arg(−L) = 10° − 20° bump
-            return (0.5 * jnp.exp(jax.lax.complex(0.0, np.pi + np.radians(10.0)
-                                                  - bump_height * bump)),)
-        return (jnp.exp(jax.lax.complex(-0.1 + bump_height * bump, -0.5 * np.pi)),)  # −90°
+    def L_fn(h, w):
+        x = (jnp.log(w) - u_c) / width
+        b, t = h * jnp.exp(-x * x), jnp.tanh(x)
+        return (0.5 * jnp.exp(cpx(0.3 * t, np.pi + np.radians(10.0) - np.radians(20.0) * b)),
+                jnp.exp(cpx(-0.1 + 0.2 * b, -0.5 * np.pi - 0.5 * t)),
+                -jnp.exp(cpx(jnp.log(0.95 + 0.04 * b), 0.3 - 0.35 * b)))
 
-    height = np.radians(20.0) if criterion == "phase crossover" else 0.2
-    m = jax.jit(lambda h: model_margins(jnp.asarray(u), L_fn(h, jnp.exp(jnp.asarray(u))),
-                                        L_fn, h)[0])(height)
-    first = np.exp(u_c - width * np.sqrt(np.log(2.0))) / TWO_PI
-    if criterion == "phase crossover":
-        np.testing.assert_allclose(float(m.gain_margin), 2.0, rtol=1e-14)
-        np.testing.assert_allclose(float(m.phase_crossover_hz), first, rtol=1e-13)
-        assert np.isinf(float(m.phase_margin_deg))  # |L| < 1 everywhere
-    else:
-        np.testing.assert_allclose(float(m.phase_margin_deg), 90.0, rtol=1e-13)
-        np.testing.assert_allclose(float(m.gain_crossover_hz), first, rtol=1e-13)
-        assert np.isinf(float(m.gain_margin))  # arg L = −90° everywhere
-    # a bump that stays short of the crossing hides nothing
-    m = jax.jit(lambda h: model_margins(jnp.asarray(u), L_fn(h, jnp.exp(jnp.asarray(u))),
-                                        L_fn, h)[0])(0.9 * height / 2)
-    assert np.isinf(float(m.gain_margin)) and np.isinf(float(m.phase_margin_deg))
+    margins = jax.jit(lambda h: model_margins(jnp.asarray(u), L_fn(h, jnp.exp(jnp.asarray(u))),
+                                              L_fn, h))
+    m0, m1, m2 = margins(1.0)
+    x_r, t_r = np.sqrt(np.log(2.0)), np.tanh(np.sqrt(np.log(2.0)))
+    right = np.exp(u_c + width * x_r) / TWO_PI
+    np.testing.assert_allclose(float(m0.gain_margin), 2.0 * np.exp(-0.3 * t_r), rtol=1e-13)
+    np.testing.assert_allclose(float(m0.phase_crossover_hz), right, rtol=1e-13)
+    np.testing.assert_allclose(float(m1.phase_margin_deg), 90.0 - np.degrees(0.5 * t_r),
+                               rtol=1e-13)
+    np.testing.assert_allclose(float(m1.gain_crossover_hz), right, rtol=1e-13)
+    assert np.isinf(float(m0.phase_margin_deg)) and np.isinf(float(m1.gain_margin))
+    # loop 2: b = 6/7 at the crossings, |L| = 0.95 + 0.04·6/7 there
+    np.testing.assert_allclose(float(m2.gain_margin), 1.0 / (0.95 + 0.24 / 7), rtol=1e-13)
+    # the least |1 + L| on a fine grid, then on a finer one around its least point
+    fine = u_c + width * np.linspace(-3.0, 3.0, 60_001)
+    dist = lambda x: np.abs(1.0 + np.asarray(L_fn(1.0, jnp.exp(jnp.asarray(x)))[2]))  # noqa
+    j = int(np.argmin(dist(fine)))
+    least = dist(np.linspace(fine[j - 1], fine[j + 1], 100_001)).min()
+    assert 0.01 < least < 0.02 and dist(u[k - 1 : k + 1]).min() > 0.29
+    # (|1 + L| = 0.016 cancels 1 against 0.98: its round-off is ~60 ε relative; measured 6e-15)
+    np.testing.assert_allclose(float(m2.modulus_margin), least, rtol=1e-13)
+    # bumps that stay short of zero hide nothing
+    m0, m1, m2 = margins(0.4)
+    assert np.isinf(float(m0.gain_margin)) and np.isinf(float(m1.phase_margin_deg))
 
 
 def test_grid_modulus_margin_next_to_an_unresolved_resonance():

@@ -30,7 +30,7 @@ _TWO_PI = 2.0 * math.pi
 _N_CANDIDATES = 3  # crossings refined per criterion (the best ones on the grid)
 # grid points searched per criterion for two crossings between them and their neighbours (the
 # ones where the crossing equation comes closest to zero)
-_N_HIDDEN = 2
+_N_HIDDEN = 3
 # Safeguarded Newton (or bisection) steps from the grid estimate, in one compiled loop (more steps
 # cost run time, not compilation); then one step with gradients.  Near a sharp resonance the
 # grid estimate can sit several bisections away: 3 steps left crossings at 1e-8 whose value
@@ -169,7 +169,7 @@ def _hidden_pairs(u, L):
         am, a0, ap = a[:-2], a[1:-1], a[2:]
         same = (jnp.sign(fm) == jnp.sign(f0)) & (jnp.sign(fp) == jnp.sign(f0)) & (f0 != 0)
         # the phase equation wraps at ±π, far from the negative real axis
-        near = jnp.isfinite(lm[1:-1]) & (a0 < 0.5 * math.pi)
+        near = jnp.isfinite(lm[1:-1]) & ((f is lm) | (a0 < 0.5 * math.pi))
         valid = same & near & (a0 <= am) & (a0 < ap)
         out.append((valid, u[:-2], u[2:], jnp.sign(f0), a0))
     return out
@@ -295,7 +295,7 @@ def model_margins(u, Ls, L_fn, params) -> list[Margins]:
         # across zero, in [lo, v_e] and [v_e, hi].
         e_loop, e_crit, e_valid, e_lo, e_hi, e_sign = (cat(*x) for x in zip(*extrema))
         n_ext = e_loop.shape[0]
-        pad = max(0, n_ext - n_cross)  # the pairs take 2 n_ext slots
+        pad = max(0, 3 * n_ext - n_cross)  # the second round takes 4 n_ext slots
         z = jnp.zeros(pad)
         slots = (cat(loop_i, e_loop, z.astype(loop_i.dtype)), cat(crit, e_crit + 3,
                  z.astype(crit.dtype)), cat(sign_lo, -e_sign, z))
@@ -314,17 +314,23 @@ def model_margins(u, Ls, L_fn, params) -> list[Margins]:
             # at the start of the second round: the first round's crossings are kept, and the
             # slots take the pairs, from the refined extrema v_e with the crossing equation f
             # and f'' there (the first round's last pass); each crossing of a pair starts where
-            # the parabola of f through v_e crosses zero
+            # the parabola of f through v_e crosses zero.  With them, from the same starts,
+            # the least |1 + L| on either side of each extremum (a resonance between grid
+            # points can pass −1 closer than any grid point).
             ext = slice(n_cross, n_cross + n_ext)
             v_e, sign, f_e, f2 = v[ext], e_sign, fc[ext], df[ext]
             hidden = ok[ext] & (jnp.sign(f_e) == -sign) & (v_e > e_lo) & (v_e < e_hi)
             d = jnp.sqrt(jnp.abs(2.0 * f_e / jnp.where(f2 != 0, f2, 1.0)))
-            zp = jnp.zeros(n_slots - 2 * n_ext)
-            pa, pb = cat(e_lo, v_e, zp), cat(v_e, e_hi, zp)
-            pairs = (cat(jnp.clip(cat(v_e - d, v_e + d), pa[:2 * n_ext], pb[:2 * n_ext]), zp),
-                     pa, pb, df, cat(hidden, hidden, zp > 0), fc,
-                     (cat(e_loop, e_loop, zp.astype(e_loop.dtype)),
-                      cat(e_crit, e_crit, zp.astype(e_crit.dtype)), cat(sign, -sign, zp)))
+            zp = jnp.zeros(n_slots - 4 * n_ext)
+            two = lambda x, y: cat(x, y, x, y)  # noqa: E731
+            pa, pb = cat(two(e_lo, v_e), zp), cat(two(v_e, e_hi), zp)
+            guess = jnp.clip(two(v_e - d, v_e + d), pa[:4 * n_ext], pb[:4 * n_ext])
+            minus = -jnp.ones_like(sign)
+            pairs = (cat(guess, zp), pa, pb, df, cat(hidden, hidden, ok[ext], ok[ext], zp > 0),
+                     fc, (cat(e_loop, e_loop, e_loop, e_loop, zp.astype(e_loop.dtype)),
+                          cat(e_crit, e_crit, 2 + 0 * e_crit, 2 + 0 * e_crit,
+                              zp.astype(e_crit.dtype)),
+                          cat(sign, -sign, minus, minus, zp)))
             now = (v, a, b, df, ok, fc, (loop_s, crit_s, sign_s))
             switch = k == _NEWTON_STEPS + 1
             first = jax.tree_util.tree_map(lambda x, y: jnp.where(switch, y, x), first,
@@ -348,22 +354,32 @@ def model_margins(u, Ls, L_fn, params) -> list[Margins]:
     state = ((v0, lo, hi, one, ok, one, slots), (v0[:n_cross], one[:n_cross]))
     (v, _, _, df, ok_s, _, _), (v1, df1) = jax.lax.fori_loop(
         0, (2 if n_ext else 1) * (_NEWTON_STEPS + 1), newton, state)
-    if n_ext:  # the first round's crossings, then the pairs
-        v, df = cat(v1, v[:2 * n_ext]), cat(df1, df[:2 * n_ext])
-        loop_i, crit = cat(loop_i, e_loop, e_loop), cat(crit, e_crit, e_crit)
-        valid, ok = cat(valid, ok_s[:2 * n_ext]), cat(ok_cross, ok_s[:2 * n_ext])
+    if n_ext:  # the first round's crossings, then the pairs and the minima beside them
+        v, df = cat(v1, v[:4 * n_ext]), cat(df1, df[:4 * n_ext])
+        loop_i = cat(loop_i, e_loop, e_loop, e_loop, e_loop)
+        crit = cat(crit, e_crit, e_crit, 2 + 0 * e_crit, 2 + 0 * e_crit)
+        valid, ok = cat(valid, ok_s[:4 * n_ext]), cat(ok_cross, ok_s[:4 * n_ext])
+        # a minimum searched beside an extremum, in a bracket that need not hold one, counts
+        # where it converged (else a first-order step from a slope could undershoot)
+        settled = cat(jnp.zeros(n_cross + 2 * n_ext, bool), jnp.ones(2 * n_ext, bool))
     else:
         ok = ok_cross
+        settled = jnp.zeros(n_cross, bool)
     v, df = jax.lax.stop_gradient(v), jax.lax.stop_gradient(df)
 
-    def final(v, i, c, ok, df):
+    def final(v, i, c, ok, df, settled):
         L, L1 = (x[i] for x in _jet1(L_fn, params, v))
         f = _equations(L, L1)
         dv = jnp.where(ok & (df != 0), -f[c] / jnp.where(df != 0, df, 1.0), 0.0)
         score, value = _values(L + L1 * _c(dv))
-        return v + dv, score[c], value[c]
+        # a phase crossover bisected onto the phase's wrap (L on the positive real axis, where
+        # arg(−L) jumps from −π to π) is none
+        real = jnp.where(c == 0, jnp.abs(f[0]) < 0.5, True)
+        real &= ~settled | (jnp.abs(dv) <= 1e-9)
+        return v + dv, jnp.where(real, score[c], jnp.inf), value[c]
 
-    v, score, value = jax.vmap(final)(v, loop_i, crit, ok, df)
+    v, score, value = jax.vmap(final)(v, loop_i, crit, ok, df, settled)
+    valid &= score < jnp.inf
     out = []
     for i in range(len(Ls)):
         per = []
