@@ -30,7 +30,7 @@ _TWO_PI = 2.0 * math.pi
 _N_CANDIDATES = 3  # crossings refined per criterion (the best ones on the grid)
 # grid points searched per criterion for two crossings between them and their neighbours (the
 # ones where the crossing equation comes closest to zero)
-_N_HIDDEN = 3
+_N_HIDDEN = 2
 # Safeguarded Newton (or bisection) steps from the grid estimate, in one compiled loop (more steps
 # cost run time, not compilation); then one step with gradients.  Near a sharp resonance the
 # grid estimate can sit several bisections away: 3 steps left crossings at 1e-8 whose value
