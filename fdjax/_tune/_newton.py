@@ -416,7 +416,8 @@ def tune_newton(
             st, hist = _run_gradient_steps(parameterisation, objective, drive, y, st,
                                            jnp.asarray(n), rows=rows // 2, **trust)
             program = "gradient"
-        assert n + (not started) <= rows  # (a write past the history would be dropped)
+        # (a write past the history would be dropped)
+        assert n + (not started) <= (rows // 2 if program == "gradient" else rows)
         history.append(np.asarray(hist)[:n + (not started)])  # waits for the steps
         started = True
         if program in seen:  # the first call of each program may compile it
