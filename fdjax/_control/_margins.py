@@ -328,7 +328,7 @@ def model_margins(u, Ls, L_fn, params) -> list[Margins]:
             minus = -jnp.ones_like(sign)
             pairs = (cat(guess, zp), pa, pb, df, cat(hidden, hidden, ok[ext], ok[ext], zp > 0),
                      fc, (cat(e_loop, e_loop, e_loop, e_loop, zp.astype(e_loop.dtype)),
-                          cat(e_crit, e_crit, 2 + 0 * e_crit, 2 + 0 * e_crit,
+                          cat(e_crit, e_crit, jnp.full_like(e_crit, 2), jnp.full_like(e_crit, 2),
                               zp.astype(e_crit.dtype)),
                           cat(sign, -sign, minus, minus, zp)))
             now = (v, a, b, df, ok, fc, (loop_s, crit_s, sign_s))
@@ -357,7 +357,7 @@ def model_margins(u, Ls, L_fn, params) -> list[Margins]:
     if n_ext:  # the first round's crossings, then the pairs and the minima beside them
         v, df = cat(v1, v[:4 * n_ext]), cat(df1, df[:4 * n_ext])
         loop_i = cat(loop_i, e_loop, e_loop, e_loop, e_loop)
-        crit = cat(crit, e_crit, e_crit, 2 + 0 * e_crit, 2 + 0 * e_crit)
+        crit = cat(crit, e_crit, e_crit, jnp.full_like(e_crit, 2), jnp.full_like(e_crit, 2))
         valid, ok = cat(valid, ok_s[:4 * n_ext]), cat(ok_cross, ok_s[:4 * n_ext])
         # a minimum searched beside an extremum, in a bracket that need not hold one, counts
         # where it converged (else a first-order step from a slope could undershoot)

@@ -386,7 +386,8 @@ def tune_newton(
     # alone one: 2·chunk rows, one program for any hessian_every and count of steps.  A chunk
     # below the default runs in the default chunk's programs (its histories are sized for
     # it), and the gradient steps' history in one program for any hessian_every.
-    rows = 2 * max(chunk, _DEFAULT_CHUNK)
+    grad_rows = max(chunk, _DEFAULT_CHUNK)  # the gradient steps' history
+    rows = 2 * grad_rows
 
     def cycles(st, n_cycles, every, split, quasi, start):
         return _run_cycles(parameterisation, objective, drive, y, st, jnp.asarray(n_cycles),
@@ -414,10 +415,10 @@ def tune_newton(
         else:
             n = min(exact_at, steps, done + chunk) - done
             st, hist = _run_gradient_steps(parameterisation, objective, drive, y, st,
-                                           jnp.asarray(n), rows=rows // 2, **trust)
+                                           jnp.asarray(n), rows=grad_rows, **trust)
             program = "gradient"
         # (a write past the history would be dropped)
-        assert n + (not started) <= (rows // 2 if program == "gradient" else rows)
+        assert n + (not started) <= (grad_rows if program == "gradient" else rows)
         history.append(np.asarray(hist)[:n + (not started)])  # waits for the steps
         started = True
         if program in seen:  # the first call of each program may compile it
