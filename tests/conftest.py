@@ -11,9 +11,9 @@ import os
 #   again (measured: `make test` 481 → 335 s, 901 → 593 CPU-s).
 # Results agree with XLA's defaults to round-off (every tolerance holds under both; the one
 # entry that moved most, θ1/F3 at 3 kHz in test_table, 2.8e-10 → 6.7e-10 relative, is 1e-12 of
-# its own peak).  The demo test runs the whole chain in its own process with XLA's defaults,
-# as users run it.  A jaxlib that no longer knows the emitters' flag keeps its defaults (XLA
-# aborts on an unknown flag: it is tried first in a subprocess).
+# its own peak), and `fdjax demo` prints the same text under both.  A jaxlib that no longer
+# knows the emitters' flag keeps its defaults (XLA aborts on an unknown flag: it is tried first
+# in a subprocess).
 _flags = ["--xla_cpu_enable_concurrency_optimized_scheduler=false"]
 _CLASSIC = "--xla_cpu_use_fusion_emitters=false"
 
