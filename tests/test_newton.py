@@ -9,11 +9,25 @@ from compile_events import compilations
 from jit_errors import CHECK_FAILED
 
 import fdjax
-from fdjax._tune._newton import _values, _values_split, trust_region_step
+from fdjax._tune._local import _settled
+from fdjax._tune._newton import _Newton, _run_cycles, trust_region_step
 
-# J with its gradient and Hessian at each position, as the tuner's steps compute them
-_evaluate = eqx.filter_jit(_values)
-_evaluate_split = eqx.filter_jit(_values_split)
+
+def _at(par, obj, drive, y, theta, split=False):
+    """J, ∇J and the model's Hessian at each position, as the tuner's steps compute them, in the
+    tuner's own program: its loop called with the start alone (no cycle, the zero first step
+    that evaluates the start), with the arguments tune_newton gives it for a chunk ≤ 10 (one
+    program compiled for the tuner and these checks, not a second of its own).  Returns the
+    iterate: ``j``, ``g``, ``H`` (with ``split``: the margin term's Hessian, and ``g_m``)."""
+    n, p = theta.shape
+    zeros = jnp.zeros((n, p, p))
+    st = _settled(_Newton(jnp.asarray(theta), jnp.zeros(n), jnp.zeros((n, p)), zeros,
+                          jnp.full(n, 0.3), zeros, jnp.zeros((n, p))))
+    st, _ = _run_cycles(par, obj, drive, y, st, jnp.asarray(0), every=jnp.asarray(1),
+                        split=split, quasi=jnp.asarray(False), rows=20,
+                        start=jnp.asarray(True), shrink=jnp.asarray(0.25),
+                        max_radius=jnp.asarray(5.0))
+    return st
 
 
 def _conditions(g, H, delta, p):
@@ -107,7 +121,7 @@ def test_tune_newton_lowers_the_objective_with_the_exact_hessian():
     """Four steps at two positions halve J at both (measured 7.87 → 3.79 and 19.1 → 3.25); every
     accepted J is below the one before; the Hessian the steps use is the derivative of the
     gradient (central differences of the compiled gradient along two parameters, h = 1e-4:
-    measured 4e-7 relative, the differences' truncation error)."""
+    measured 3e-7 and 6e-7 relative, the differences' truncation error)."""
     drive, start, par, obj = _problem()
     pos = np.array([0.115, 0.3])
     with compilations() as names:
@@ -179,9 +193,13 @@ def test_tune_newton_lowers_the_objective_with_the_exact_hessian():
     # initial radius 0.3 (the zero first step before it took the start and kept the radius):
     # here rejected at 0.115 m (J 7.87 → 98.9 at the trial), accepted at 0.3 m
     theta0 = jnp.broadcast_to(par.from_controller(start), (2, 12))
-    j0, g0, H0 = _evaluate(par, obj, drive, y, theta0)  # (compiled with the barrier)
-    np.testing.assert_allclose(np.asarray(j0), h[0], rtol=5e-11)
-    one = fdjax.tune_newton(par, obj, drive, pos, start, steps=1, chunk=2)
+    with compilations() as names:
+        at0 = _at(par, obj, drive, y, theta0)  # (with the barrier)
+        one = fdjax.tune_newton(par, obj, drive, pos, start, steps=1, chunk=2)
+    assert not [n for n in names if "_run" in n], names  # the tuner's program, compiled above
+    g0, H0 = at0.g, at0.H
+    # the start's J as the first run's (the same program: measured equal)
+    np.testing.assert_allclose(np.asarray(at0.j), h[0], rtol=1e-14)
     trial = np.asarray(one.history)[1]
     assert trial[0] > h[0, 0] and trial[1] < h[0, 1], (h[0], trial)
     for i, accepted in enumerate((False, True)):
@@ -192,16 +210,17 @@ def test_tune_newton_lowers_the_objective_with_the_exact_hessian():
     # (a float64 array, as Objective's converter makes it: a weakly typed 0.0 would compile anew)
     obj = eqx.tree_at(lambda o: o.stability_weight, obj, jnp.asarray(0.0, jnp.float64))
     with compilations() as names:
-        _, _, H = _evaluate(par, obj, drive, y, theta)
+        H = _at(par, obj, drive, y, theta).H
         diffs = {}
         for k in (0, 7):  # k_p's logarithm and the peak filter's frequency
             e = jnp.zeros(12).at[k].set(1e-4)
-            diffs[k] = (_evaluate(par, obj, drive, y, theta + e)[1],
-                        _evaluate(par, obj, drive, y, theta - e)[1])
-    assert not [n for n in names if "_values" in n], names
+            diffs[k] = (_at(par, obj, drive, y, theta + e).g, _at(par, obj, drive, y, theta - e).g)
+    assert not [n for n in names if "_run" in n], names
     for k, (gp, gm) in diffs.items():
         fd = (np.asarray(gp) - np.asarray(gm)) / 2e-4
         col = np.asarray(H)[:, :, k]
+        print("Hessian column", k, "against central differences:",
+              np.linalg.norm(fd - col) / np.linalg.norm(col))
         assert np.linalg.norm(fd - col) < 1e-5 * np.linalg.norm(col), (k, fd, col)
 
 
@@ -223,19 +242,28 @@ def test_tune_newton_with_the_margins_hessian():
         obj.simulated_term(c, "drive", 0.115)
     with pytest.raises(ValueError, match=r"`Objective\.margin_term\(position_m=\.\.\.\)`"):
         obj.margin_term(c, drive, 115.0)
-    j, g, g_m, H_m = _evaluate_split(par, obj, drive, y, theta)
-    j_full, g_full, _ = _evaluate(par, obj, drive, y, theta)
-    # (the run below starts from these values, evaluated in its own program)
+    split = _at(par, obj, drive, y, theta, split=True)
+    j, g, g_m, H_m = split.j, split.g, split.g_m, split.H
+    full = _at(par, obj, drive, y, theta)  # (the program of test_tune_newton_lowers_...)
+    j_full, g_full = full.j, full.g
+    print("split against full: J", np.max(np.abs(np.asarray(j / j_full - 1))), "∇J",
+          np.max(np.abs(np.asarray(g - g_full))) / np.max(np.abs(np.asarray(g_full))))
+    # (the run below starts from these values: its first call evaluates them, as here)
     np.testing.assert_allclose(np.asarray(j), np.asarray(j_full), rtol=1e-12)
     np.testing.assert_allclose(np.asarray(g), np.asarray(g_full), rtol=1e-9, atol=1e-12)
     quiet = eqx.tree_at(lambda o: (o.error_scale_m, o.stability_weight, o.current_weight), obj,
                         tuple(jnp.asarray(v, jnp.float64) for v in (1e3, 0.0, 0.0)))
-    _, g_q, H_q = _evaluate(par, quiet, drive, y, theta)
+    with compilations() as names:  # the weights are leaves: the program above
+        q = _at(par, quiet, drive, y, theta)
+    assert not [n for n in names if "_run" in n], names
+    g_q, H_q = q.g, q.H
     assert np.linalg.norm(np.asarray(g_q - g_m)) < 1e-8 * np.linalg.norm(np.asarray(g_m))
     err = np.linalg.norm(np.asarray(H_q - H_m)) / np.linalg.norm(np.asarray(H_m))
     print("margins' Hessian against J's, simulated terms weighted out:", err)
     assert err < 1e-8, err
-    r = fdjax.tune_newton(par, obj, drive, pos, start, steps=4, hessian="margins")
+    with compilations() as names:  # the steps' program, that of the values above
+        r = fdjax.tune_newton(par, obj, drive, pos, start, steps=4, hessian="margins")
+    assert not [n for n in names if "_run" in n], names
     h = np.asarray(r.history)
     assert h.shape == (5, 2) and np.all(np.isfinite(h))
     np.testing.assert_allclose(h[0], np.asarray(j_full), rtol=5e-11)

@@ -20,6 +20,9 @@ from fdjax import MCM, DoubleLoop, PIDLoop
 TWO_PI = 2 * math.pi
 Y = fdjax.TABLE_1_POSITION_M
 F = np.geomspace(1.0, 3999.0, 6000)
+# Each shape of the arguments (positions, grid) and each structure of the controller compiles
+# the margins (~10 s) or the stability check again: the tests below share them where they can.
+TRAVEL = np.linspace(0.1, 0.7, 7)
 
 
 @pytest.fixture(scope="module")
@@ -53,21 +56,25 @@ def test_modes_at_115_mm(drive):
     np.testing.assert_allclose(z, [0.1015, 0.0321, 0.00426, 0.00567], rtol=2e-3)
     np.testing.assert_allclose(ph, [-107.4, -273.0, -87.2, -269.3], atol=0.06)
     # the saddle's axial mode (the peak filter's target) softens toward the screw end
-    f2 = [float(fdjax.drive_modes(drive, p, n_modes=2).frequency_hz[1]) for p in (0.1, 0.4, 0.7)]
+    # (n_modes=4 as above: one compiled program)
+    f2 = [float(fdjax.drive_modes(drive, p, n_modes=4).frequency_hz[1]) for p in (0.1, 0.4, 0.7)]
     np.testing.assert_allclose(f2, [177.1, 138.6, 118.2], rtol=5e-4)
 
 
 def test_default_gains_stable_over_the_travel(drive):
     """DoubleLoop() and PIDLoop() are stable over the travel, sampled with either delay and
     continuous; their sampled gain margins (plant input) are 8.0 dB and 16.6–22.2 dB."""
-    positions = np.linspace(0.1, 0.7, 7)
-    # the continuous loop at the reference servo's delay; the sampled one at both delays
+    positions = TRAVEL
+    # the continuous loop at the reference servo's delay; the sampled one at both delays; one
+    # position per call (the sampled loop at d = 2 is then the program gain_headroom runs in
+    # the tests below, compiled once)
     cases = [(1, fdjax.SampledData()), (2, fdjax.SampledData()), (2, fdjax.Continuous())]
     for d, method in cases:
         for loop in (DoubleLoop(), PIDLoop()):
-            st = fdjax.check_stability(loop, drive, position_m=positions, method=method,
-                                       servo=fdjax.Servo(delay_samples=d))
-            assert np.all(np.asarray(st.stable)), st.message
+            for y in positions:
+                st = fdjax.check_stability(loop, drive, position_m=float(y), method=method,
+                                           servo=fdjax.Servo(delay_samples=d))
+                assert bool(st.stable), st.message
     dl = fdjax.loop_margins(DoubleLoop(), drive, F, position_m=positions).plant_input
     assert np.all(np.abs(np.asarray(dl.gain_margin_db) - 8.0) < 0.05)  # 7.968–7.990 dB
     # a 120-point grid gives the same margins: each refined to round-off on the twin (a
@@ -101,7 +108,8 @@ def test_the_mcm_raises_the_speed_loop_gain_and_the_correction_is_modal(drive):
     # the headroom is the stability boundary: 0.1 % below it stable, 0.1 % above unstable
     for k, ctl in ((with_mcm, c), (without, DoubleLoop(200.0, 300.0, 60.0))):
         for f, stable in ((0.999, True), (1.001, False)):
-            at = eqx.tree_at(lambda x: x.log_kv, ctl, jnp.asarray(math.log(f * k)))
+            # (a float64 leaf like the controller's own: a weakly typed one compiles anew)
+            at = eqx.tree_at(lambda x: x.log_kv, ctl, jnp.asarray(math.log(f * k), jnp.float64))
             assert bool(fdjax.check_stability(at, drive, position_m=Y).stable) == stable, (k, f)
     peak, notch = c.mcm.peak, c.mcm.notch
     for factor, most in ((1.3, 0.5), (0.7, 0.37)):
@@ -131,8 +139,11 @@ def test_pid_tuned_at_115_mm_loses_its_margin_toward_the_screw_end(drive):
     pid = fdjax.reference_pid()
     g = db(fdjax.gain_headroom(pid, drive, position_m=np.array([Y, 0.7])))
     assert 5.8 < g[0] < 6.2 and 0.4 < g[1] < 1.0, g
-    m = fdjax.loop_margins(pid, drive, F, position_m=np.array([Y, 0.7])).plant_input
-    np.testing.assert_allclose(np.asarray(m.gain_margin_db), g, atol=0.02)
+    # seven positions, Y and 0.7 m first and last, as TRAVEL's in
+    # test_default_gains_stable_over_the_travel: the same compiled program
+    pos = np.concatenate([[Y], TRAVEL[1:]])
+    m = fdjax.loop_margins(pid, drive, F, position_m=pos).plant_input
+    np.testing.assert_allclose(np.asarray(m.gain_margin_db)[[0, -1]], g, atol=0.02)
     # at 115 mm the saddle's mode lifts |L| above 1 between 173.13 and 174.59 Hz: a 400-point
     # grid (2 % steps) has no point there, and its margins are the 6000-point grid's all the
     # same (its phase margin had been +88°, from the 14 Hz crossover; measured equal to 2e-14)

@@ -1,11 +1,12 @@
 """Closed-loop time simulation of the drive: instability and divergence reported with the
-position, gradients against central differences, positions batched, the moving table.
+position, gradients against central differences, positions batched, the moving table
+(its continuous path against a stiff solver is in tests/test_simulate.py, beside the sampled
+one, whose run it shares).
 
 Oracles: the closed loop's poles (eigenvalues), central differences, runs one position at a
 time and the frozen table.
 """
 
-import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -49,11 +50,12 @@ def _rel(a, b):
 
 def _hot_pid(drive, factor):
     """The default PID with every gain scaled to ``factor`` times its gain margin at 0.7 m:
-    unstable there by construction (checked by the closed-loop poles)."""
+    unstable there by construction (checked by the closed-loop poles).  The gain margin of a
+    PID whose gains all scale together is its gain headroom, found by the eigenvalues of the
+    closed loop (to 1e-4: the program check_stability compiles below anyway, where the margins'
+    program cost seconds of compilation for one number)."""
     base = fdjax.PIDLoop()
-    f = np.geomspace(1.0, 3000.0, 4000)
-    gm = float(fdjax.loop_margins(base, fdjax.state_space(drive, Y_END), f, servo=SERVO)
-               .position.gain_margin)
+    gm = float(fdjax.gain_headroom(base, drive, position_m=Y_END, servo=SERVO, rtol=1e-4))
     g = factor * gm
     hot = fdjax.PIDLoop(base.kp * g, base.ki * g, base.kd * g, base.wd)
     assert not bool(fdjax.check_stability(hot, drive, position_m=Y_END, servo=SERVO).stable)
@@ -70,8 +72,8 @@ def test_unstable_loop_is_reported_with_position(drive, reference):
                              duration=0.05, throw=False)
         assert sim.result == fdjax.RESULTS.unstable
         # Gelfand's formula on the transition matrix gives the growth rate of the eigenvalues
-        # of check_stability (s = ln z / T for the sampled loop): measured 1.5e-9 (sampled)
-        # and 1.2e-9 1/s (Padé) at growth rates of 22.6 and 23.2 1/s
+        # of check_stability (s = ln z / T for the sampled loop): measured 1.3e-9 (sampled)
+        # and 1.1e-9 1/s (Padé) at growth rates of 22.6 and 23.2 1/s
         st = fdjax.check_stability(hot, drive, position_m=Y_END, servo=SERVO,
                                    method=PADE6 if isinstance(method, fdjax.PadeODE) else method)
         assert float(st.growth_rate) > 0
@@ -94,28 +96,30 @@ def test_instability_and_divergence_under_jit(drive, reference):
     stable = st.stable
     np.testing.assert_array_equal(np.asarray(stable), [True, False])
     soft = fdjax.PIDLoop()
-    for method in (fdjax.SampledData(),):  # (PadeODE: same check, eager, test above)
-        sims = jax.jit(jax.vmap(lambda p, m=method: fdjax.simulate(
-            hot, drive, reference, m, servo=SERVO, position_m=p, duration=0.05,
-            twin=twin, throw=False)))(pos)
-        # the same verdict as the closed-loop poles of check_stability, position by position
-        np.testing.assert_array_equal(sims.result == fdjax.RESULTS.unstable,
-                                      ~np.asarray(stable))
-        np.testing.assert_array_equal(sims.result == fdjax.RESULTS.successful,
-                                      np.asarray(stable))
-        assert "unstable at table position 0.698 m: growing at" in sims.message
-        np.testing.assert_array_equal(np.asarray(sims.growth_rate) < 0, np.asarray(stable))
-        np.testing.assert_allclose(sims.growth_rate, st.growth_rate, rtol=0, atol=1e-7)
-        # a stable loop whose error leaves a (deliberately tiny) bound stops there
-        sim = jax.jit(lambda d, m=method: fdjax.simulate(
-            soft, d, reference, m, servo=SERVO, position_m=0.4, duration=0.05,
-            twin=twin, error_bound=1e-7, throw=False))(drive)
-        assert sim.result == fdjax.RESULTS.diverged
-        k = int(sim.failed_at)
-        assert 0 < k < sim.t.shape[0]
-        assert abs(float(sim.error_scale[k - 1])) <= 1e-7 < abs(float(sim.error_scale[k]))
-        np.testing.assert_array_equal(sim.x2[k:], sim.x2[k - 1])  # frozen, finite
-        assert "diverged" in sim.message and "table position 0.4 m" in sim.message
+    # one batched program for both runs (controller and bound as arguments); the PadeODE path
+    # makes the same check, eagerly, in the test above
+    batch = jax.jit(jax.vmap(lambda c, p, eb: fdjax.simulate(
+        c, drive, reference, fdjax.SampledData(), servo=SERVO, position_m=p, duration=0.05,
+        twin=twin, error_bound=eb, throw=False), in_axes=(None, 0, None)))
+    sims = batch(hot, pos, 0.01)
+    # the same verdict as the closed-loop poles of check_stability, position by position
+    np.testing.assert_array_equal(sims.result == fdjax.RESULTS.unstable, ~np.asarray(stable))
+    np.testing.assert_array_equal(sims.result == fdjax.RESULTS.successful, np.asarray(stable))
+    assert "unstable at table position 0.698 m: growing at" in sims.message
+    np.testing.assert_array_equal(np.asarray(sims.growth_rate) < 0, np.asarray(stable))
+    np.testing.assert_allclose(sims.growth_rate, st.growth_rate, rtol=0, atol=1e-7)
+    # a stable loop whose error leaves a (deliberately tiny) bound stops there, at each position
+    div = batch(soft, jnp.array([0.4, Y_END]), 1e-7)
+    np.testing.assert_array_equal(div.result == fdjax.RESULTS.diverged, [True, True])
+    lines = div.message.splitlines()
+    for i in range(2):
+        k = int(div.failed_at[i])
+        assert 0 < k < div.t.shape[-1]
+        e = div.error_scale[i]
+        assert abs(float(e[k - 1])) <= 1e-7 < abs(float(e[k]))
+        np.testing.assert_array_equal(div.x2[i, k:], div.x2[i, k - 1])  # frozen, finite
+        assert "diverged" in lines[i]
+    assert "table position 0.4 m" in lines[0]
     # with throw: one program for both failures (controller, position and bound as arguments)
     run = jax.jit(lambda c, p, eb: fdjax.simulate(c, drive, reference, servo=SERVO,
                                                   position_m=p, duration=0.05, twin=twin,
@@ -160,46 +164,27 @@ def test_gradients_match_central_differences(drive, mcm, reference):
                 type(method).__name__, k, float(g[k]), fd)
 
 
-def test_vmap_over_positions_equals_loop(drive, reference):
-    loop = table1_loop()
+def test_vmap_over_positions_equals_loop(drive, mcm, reference):
+    # the loop, run and twin of the sampled gradient test above: one position at a time is
+    # the program compiled there
+    loop = table1_loop(mcm=mcm)
     twin = fdjax.TwinOptions(kept_modes=fdjax.count_modes(drive))
     pos = jnp.array([0.115, 0.4, Y_END])
 
     def run(p):
         return fdjax.simulate(loop, drive, reference, servo=SERVO, position_m=p,
-                              duration=0.03, twin=twin, throw=False)
+                              duration=0.05, twin=twin, throw=False)
 
     batched = jax.vmap(run)(pos)
     for i, p in enumerate(pos):
         one = run(p)
         np.testing.assert_allclose(batched.x2[i], one.x2, rtol=1e-12, atol=1e-18)
-    assert batched.x2.shape == (3, 601)
+    assert batched.x2.shape == (3, 1001)
     # inside jit the default duration is read from a closed-over trajectory's knots
     short = jerk_limited(1e-4, 0.1, 2.0, 200.0)
     x2 = jax.jit(lambda p: fdjax.simulate(loop, drive, short, servo=SERVO, position_m=p,
                                           twin=twin, throw=False).x2)(0.3)
     assert x2.shape == (round(float(short.duration) / DT) + 1,)
-
-
-def test_moving_table(drive):
-    """Moving table, continuous path: the exponential midpoint rule agrees with a stiff adaptive
-    solver (at rest it is the frozen loop on the same basis: the sampled test below)."""
-    loop = table1_loop()
-    fast = jerk_limited(0.02, 1.0, 20.0, 2.0e4)  # 20 mm at 20 m/s²: Y moves 1 mm in 10 ms
-    dur = 0.01
-    a = fdjax.simulate(loop, drive, fast, fdjax.PadeODE(), servo=SERVO, position_m=0.3,
-                       duration=dur, moving=True, twin=TWIN8)
-    t = jnp.arange(round(dur / DT) + 1, dtype=jnp.float64) * DT
-    b = fdjax.simulate(
-        loop, drive, fast,
-        fdjax.PadeODE(solver=diffrax.Kvaerno5(),
-                      stepsize_controller=diffrax.ClipStepSizeController(
-                          diffrax.PIDController(rtol=1e-9, atol=1e-13), step_ts=t)),
-        servo=SERVO, position_m=0.3, duration=dur, moving=True, twin=TWIN8,
-    )
-    assert float(a.position_m[-1]) > 0.3 + 5e-4  # it did move
-    # Kvaerno5 at rtol 1e-9 against the default solver: measured 3.8e-10
-    assert _rel(a.error_scale, b.error_scale) < 3e-9
 
 
 def test_shared_discretisation_is_the_loop_built_apart(drive, mcm):
@@ -228,16 +213,18 @@ def test_a_moving_run_that_rests_on_an_unstable_loop_is_unstable():
     drive_ = fdjax.reference_drive()
     ref = fdjax.reference_controller(drive_)
     kw = dict(moving=True, twin=fdjax.TwinOptions(kept_modes=6), throw=False)
+    move = jerk_limited(0.1, 0.3, 2.0, 400.0)  # 0.45 → 0.55 m in 0.49 s
+    # the moving runs that stay put last as long as this move: one compiled moving run for all
+    dur = float(move.duration)
     frozen = fdjax.simulate(ref, drive_, jerk_limited(1e-4, 0.05, 2.0, 400.0), position_m=0.6,
                             duration=0.02, twin=kw["twin"], throw=False)
     start = fdjax.simulate(ref, drive_, jerk_limited(1e-4, 0.05, 2.0, 400.0), position_m=0.6,
-                           duration=0.02, **kw)
+                           duration=dur, **kw)
     assert start.result == fdjax.RESULTS.unstable == frozen.result
     # the loop at rest at the end, 0.1 mm on: within 0.1 % of the frozen one's (measured 17.62
     # and 17.63 1/s)
     np.testing.assert_allclose(start.growth_rate, frozen.growth_rate, rtol=1e-3)
     assert "closed loop unstable at table position 0.6" in start.message
-    move = jerk_limited(0.1, 0.3, 2.0, 400.0)  # 0.45 → 0.55 m in 0.49 s
     end = fdjax.simulate(ref, drive_, move, position_m=0.45, **kw)
     assert end.result == fdjax.RESULTS.unstable and float(end.growth_rate) > 0
     np.testing.assert_allclose(end.unstable_at_m, 0.55, rtol=1e-12)
@@ -246,7 +233,7 @@ def test_a_moving_run_that_rests_on_an_unstable_loop_is_unstable():
                                            r"rest there\): pole at .* Hz growing"):
         fdjax.simulate(ref, drive_, move, position_m=0.45, moving=True, twin=kw["twin"])
     ok = fdjax.simulate(ref, drive_, jerk_limited(1e-4, 0.05, 2.0, 400.0), position_m=0.3,
-                        duration=0.02, **kw)
+                        duration=dur, **kw)
     assert ok.result == fdjax.RESULTS.successful and float(ok.growth_rate) < 0
 
 
