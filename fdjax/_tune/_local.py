@@ -357,8 +357,8 @@ def tune_robust(
     opt = optimiser_or(optimiser, f"{fn}(optimiser=...)", "adam", 0.02)
     res = descend(loss, theta, opt, steps, chunk=chunk, progress=fn if progress else None)
     y = jnp.asarray(pos)
-    c = parameterisation.to_controller(res.best)
-    terms = jax.vmap(lambda p: objective(c, drive, p))(y)
+    terms = _terms_at(parameterisation, objective, drive,
+                      jnp.broadcast_to(res.best, (y.size, *jnp.shape(res.best))), y)
     return RobustTuning(y, res.params, res.best, res.history, res.aux, terms, res.seconds,
                         res.evaluations)
 
