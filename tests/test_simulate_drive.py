@@ -49,11 +49,11 @@ def _rel(a, b):
 
 
 def _hot_pid(drive, factor):
-    """The default PID with every gain scaled to ``factor`` times its gain margin at 0.7 m:
-    unstable there by construction (checked by the closed-loop poles).  The gain margin of a
-    PID whose gains all scale together is its gain headroom, found by the eigenvalues of the
-    closed loop (to 1e-4: the program check_stability compiles below anyway, where the margins'
-    program cost seconds of compilation for one number)."""
+    """The default PID with every gain scaled to ``factor`` (> 1) times its gain headroom at
+    0.7 m, the largest common factor of its gains that the eigenvalues of the closed loop call
+    stable (to 1e-4): unstable there by construction.  (The headroom is the program
+    check_stability compiles below anyway; that it equals the gain margin is test_reference's
+    and test_control's check.)"""
     base = fdjax.PIDLoop()
     gm = float(fdjax.gain_headroom(base, drive, position_m=Y_END, servo=SERVO, rtol=1e-4))
     g = factor * gm
