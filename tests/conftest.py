@@ -53,8 +53,12 @@ jax.config.update("jax_numpy_dtype_promotion", "strict")
 # XLA:CPU maps the machine code of every compiled program into memory; a long test session
 # compiles thousands of programs and reaches the kernel's limit on memory maps (65530 by
 # default), after which the next compilation crashes.  Dropping JAX's caches releases them.
+# They are dropped between two test files, where a worker passes _MAX_MAPS (one file's tests
+# share compiled programs, which a drop in its middle would compile again: test_control.py
+# alone maps about 10 000), and after any test past _HARD_MAPS.
 _MAPS = f"/proc/{os.getpid()}/maps"
 _MAX_MAPS = 30_000
+_HARD_MAPS = 50_000
 
 
 def _n_maps() -> int:
@@ -70,9 +74,10 @@ import gc  # noqa: E402
 import pytest  # noqa: E402
 
 
-@pytest.fixture(autouse=True)
-def _release_compiled_programs():
-    yield
-    if _n_maps() > _MAX_MAPS:
+@pytest.hookimpl(trylast=True)
+def pytest_runtest_teardown(item, nextitem):
+    n = _n_maps()
+    last_of_file = nextitem is None or nextitem.path != item.path
+    if n > _HARD_MAPS or (n > _MAX_MAPS and last_of_file):
         jax.clear_caches()
         gc.collect()
