@@ -191,8 +191,13 @@ def default_grid(servo: Servo) -> np.ndarray:
 
 MAX_GRID_STEP = 0.05
 """The largest relative step between neighbouring frequencies of a margins' grid: a floor that
-refuses grids of a few points, not a guarantee (a lightly damped mode, ζ ≈ 0.004 in the
-reference drive, needs steps below its half-width; the default grid's are 0.34 %)."""
+refuses grids of a few points, not a guarantee.  The margins are refined between grid points,
+so steps wider than a mode's half-width are not in themselves an error: on the reference
+drive, whose least damped closed-loop poles have relative half-widths of 0.0043–0.0046, a
+300-point grid (2.3 % steps) gives the certificates of the default grid (0.34 % steps) to
+3.4e-13 at 61 positions for three of the shipped designs.  A pair of crossings hidden between
+two grid points is looked for near a few candidate points only, so where the plant's modes are
+lighter or crowded, give a finer grid."""
 
 
 def check_grid_resolves(fixed: AbstractController, freq_hz: np.ndarray, where: str,
