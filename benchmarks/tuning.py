@@ -18,7 +18,10 @@ j_max=400.0, cycles=1)``, margins on 400 log-spaced frequencies 5–3900 Hz, twi
    whose steps run in compiled loops; one evaluation of J, its gradient and its Hessian per
    step; a warm-up call compiles every program the main call runs), and the same with the
    exact Hessian every 8 steps and SR1 updates between (``hessian_every=8``, ``--sr1-steps``
-   steps).
+   steps).  And the same tuner after 20 steps of ``fdjax.shape_loops`` (the gains raised as far
+   as the margin penalties allow, from the open loops alone: no simulation; timed after a
+   warm-up, its seconds added to the tuner's), with the exact Hessian at the start only and
+   SR1 updates after (``--shaped-steps`` steps).
 2. ``derivative_free``: ``scipy.optimize.minimize(method="Nelder-Mead", adaptive=True)`` on θ
    per position, one position after the other, J a jitted function of (θ, Y) (compiled once,
    outside the timing), initial simplex θ0 + 0.1·e_k, at most ``--maxfev`` evaluations.
@@ -39,7 +42,7 @@ derivative-free tuner to reach its result, six local tunings within 60 s after c
    from a network fitted to the start's MCM: compile time, time per step, simulations.
 
 Usage:  python benchmarks/tuning.py [--steps 300] [--lbfgs-steps 100] [--newton-steps 60]
-        [--sr1-steps 150] [--maxfev 1500]
+        [--sr1-steps 150] [--shaped-steps 100] [--maxfev 1500]
         [--e2e-steps 100] [--quick] [--out benchmarks/results/tuning.json]
 """
 
@@ -72,6 +75,7 @@ LEARNING_RATE = 0.02
 SIMPLEX_STEP = 0.1
 SIMS_PER_GRADIENT_STEP = 2  # one forward and one reverse pass per position
 HESSIAN_EVERY = 8  # the quasi-Newton variant: the exact Hessian every 8 steps, SR1 between
+SHAPE_STEPS = 20  # fdjax.shape_loops steps (no simulation) before the shaped variant's Newton
 NEWTON_CHUNK = 10  # tune_newton's default: steps per compiled call, rounded up to whole cycles
 SIMPLEX_CHUNK = 500  # tune_simplex: evaluations per compiled call (a divisor of --maxfev)
 TARGETS = {"simulations_ratio": 20.0, "wall_time_ratio": 10.0, "six_tunings_s": 60.0}
@@ -178,13 +182,20 @@ def gradient_local(par, obj, drive, positions, start, steps, method="adam"):
 
 
 def newton_local(par, obj, drive, positions, start, steps, every=1, radius=0.3,
-                 max_radius=5.0, shrink=0.25, hessian="full"):
+                 max_radius=5.0, shrink=0.25, hessian="full", shape_steps=0):
     """fdjax.tune_newton: one evaluation of J with its gradient and Hessian per step and
     position (with ``hessian="margins"``: J with its gradient, and the Hessian of the margin
     term alone, which needs no simulation).  A warm-up call of 2 steps compiles the programs;
     the main call is timed whole, its final terms apart; the start's evaluation counts as a
     step (history row 0)."""
     trust = dict(radius=radius, max_radius=max_radius, shrink=shrink, hessian=hessian)
+    shape_s = 0.0
+    if shape_steps:
+        # fdjax.shape_loops first (no simulation): warmed up, then timed; its seconds count in
+        # the tuner's wall time
+        fdjax.shape_loops(par, obj, drive, positions, start, steps=shape_steps)
+        shaped = fdjax.shape_loops(par, obj, drive, positions, start, steps=shape_steps)
+        start, shape_s = shaped.theta, shaped.seconds
     t0 = time.perf_counter()
     # the warm-up compiles the programs the main call runs (their step counts are traced):
     # a cycle of `every` steps (with every > 10 steps, tune_newton's chunk, gradient steps in
@@ -205,6 +216,8 @@ def newton_local(par, obj, drive, positions, start, steps, every=1, radius=0.3,
     per_step = steps_s / (steps + 1)
     h = np.asarray(r.history)
     n_par = len(par.names)
+    every_text = ("" if every == 1 else f" every {every} steps, SR1 between" if every <= steps
+                  else " at the start only, SR1 after")
     # row 0: the start, with the Hessian; row k: step k, with the Hessian when every | k
     # (the margins' Hessian alone runs no simulation)
     with_h = np.array([k % every == 0 and hessian == "full" for k in range(steps + 1)])
@@ -214,15 +227,17 @@ def newton_local(par, obj, drive, positions, start, steps, every=1, radius=0.3,
         "chunk": -(-NEWTON_CHUNK // every) * every if every <= NEWTON_CHUNK else NEWTON_CHUNK,
         "optimiser": "trust-region Newton, exact Hessian"
                      + (" of the margin term every step, SR1 for the rest of J"
-                        if hessian == "margins" else
-                        " every step" if every == 1 else f" every {every} steps, SR1 between")
-                     + f" (radius {radius:g}, max {max_radius:g}, shrink {shrink:g})",
+                        if hessian == "margins" else " every step" if every == 1 else every_text)
+                     + f" (radius {radius:g}, max {max_radius:g}, shrink {shrink:g})"
+                     + (f", after {shape_steps} steps of fdjax.shape_loops (no simulation; "
+                        f"{shape_s:.2f} s, counted in the steps' time)" if shape_steps else ""),
+        "shape_steps": int(shape_steps), "shape_s": shape_s,
         "trust_region": trust,
         "hessian_every": int(every), "sims_rows": sims,
         "evaluations": np.ones_like(h, dtype=int),
         "compile_s": max(warm_s - (warm_steps + 1) * per_step - terms_s, 0.0),
         "warmup_call_s": warm_s,
-        "main_call_wall_s": wall_s, "steps_s": steps_s, "final_terms_s": terms_s,
+        "main_call_wall_s": wall_s, "steps_s": steps_s + shape_s, "final_terms_s": terms_s,
         **_outcome(r, per_step),
     }
 
@@ -454,7 +469,10 @@ def _f(x, fmt):
 METHODS = {"adam": f"Adam({LEARNING_RATE})", "lbfgs": "L-BFGS (optax.lbfgs, zoom line search)",
            "newton": "trust-region Newton with the exact Hessian (fdjax.tune_newton)",
            "newton_sr1": "trust-region Newton, exact Hessian every 8 steps, SR1 between "
-                         "(fdjax.tune_newton(hessian_every=8))"}
+                         "(fdjax.tune_newton(hessian_every=8))",
+           "shaped_sr1": f"loop shaping without simulation ({SHAPE_STEPS} steps of "
+                         "fdjax.shape_loops), then trust-region Newton with the exact Hessian "
+                         "at the start only, SR1 after"}
 
 
 def markdown(result):
@@ -625,6 +643,9 @@ def main():
     ap.add_argument("--newton-steps", type=int, default=60, help="trust-region Newton steps")
     ap.add_argument("--sr1-steps", type=int, default=150,
                     help=f"trust-region Newton steps with the Hessian every {HESSIAN_EVERY}")
+    ap.add_argument("--shaped-steps", type=int, default=100,
+                    help=f"trust-region Newton steps after {SHAPE_STEPS} steps of "
+                         "fdjax.shape_loops (the exact Hessian at the start only, SR1 after)")
     ap.add_argument("--maxfev", type=int, default=1500)
     ap.add_argument("--e2e-steps", type=int, default=100,
                     help="end-to-end training steps (batch of 8 positions)")
@@ -635,7 +656,7 @@ def main():
     args = ap.parse_args()
     if args.quick:
         args.steps, args.lbfgs_steps, args.maxfev, args.e2e_steps = 60, 20, 200, 50
-        args.newton_steps, args.sr1_steps = 10, 16
+        args.newton_steps, args.sr1_steps, args.shaped_steps = 10, 16, 16
 
     load0 = loadavg()
     drive, par, obj, positions, start = setup(2 if args.quick else 6)
@@ -644,9 +665,12 @@ def main():
         grads[method] = gradient_local(par, obj, drive, positions, start, steps, method)
         print(method, {k: v for k, v in grads[method].items()
                        if not isinstance(v, np.ndarray)}, flush=True)
-    for name, steps, every in (("newton", args.newton_steps, 1),
-                               ("newton_sr1", args.sr1_steps, HESSIAN_EVERY)):
-        grads[name] = newton_local(par, obj, drive, positions, start, steps, every)
+    for name, steps, every, shape in (("newton", args.newton_steps, 1, 0),
+                                      ("newton_sr1", args.sr1_steps, HESSIAN_EVERY, 0),
+                                      ("shaped_sr1", args.shaped_steps, args.shaped_steps + 1,
+                                       SHAPE_STEPS)):
+        grads[name] = newton_local(par, obj, drive, positions, start, steps, every,
+                                   shape_steps=shape)
         print(name, {k: v for k, v in grads[name].items()
                      if not isinstance(v, np.ndarray)}, flush=True)
     nm = derivative_free(par, obj, drive, positions, start, args.maxfev)
@@ -667,7 +691,11 @@ def main():
             k = totals["gradient_steps_to_reach_all"] - 1
 
             def run(k=k, grad=grad):
-                r = fdjax.tune_newton(par, obj, drive, positions, start, steps=max(k, 1),
+                th = start
+                if grad["shape_steps"]:
+                    th = fdjax.shape_loops(par, obj, drive, positions, start,
+                                           steps=grad["shape_steps"]).theta
+                r = fdjax.tune_newton(par, obj, drive, positions, th, steps=max(k, 1),
                                       hessian_every=grad["hessian_every"])
                 return r.history, r.terms.total
 

@@ -40,7 +40,12 @@ from ._local import (
     tune_robust as tune_robust,
     tune_shared_gains as tune_shared_gains,
 )
-from ._newton import trust_region_step as trust_region_step, tune_newton as tune_newton
+from ._newton import (
+    LoopShaping as LoopShaping,
+    shape_loops as shape_loops,
+    trust_region_step as trust_region_step,
+    tune_newton as tune_newton,
+)
 from ._objective import (
     Objective as Objective,
     ObjectiveTerms as ObjectiveTerms,

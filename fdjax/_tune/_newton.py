@@ -52,7 +52,7 @@ from ._local import LocalTuning, _check_common, _settled, _start, _terms_at
 from ._objective import Objective
 from ._parameterisation import AbstractParameterisation
 
-__all__ = ["tune_newton", "trust_region_step"]
+__all__ = ["tune_newton", "trust_region_step", "shape_loops", "LoopShaping"]
 
 _ACCEPT = 1e-4
 _BISECTIONS = 100
@@ -434,3 +434,136 @@ def tune_newton(
     terms = _terms_at(parameterisation, objective, drive, theta, y)
     return LocalTuning(y, theta, theta, jnp.asarray(np.concatenate(history)), terms, t_steps,
                        jnp.ones((steps, pos.size), jnp.int32))
+
+
+# ------------------------------------------------------------------ loop shaping on the margins
+_SHAPED_GAINS = ("kp", "kv", "ki")
+
+
+class LoopShaping(eqx.Module):
+    """Result of :func:`shape_loops`.
+
+    Attributes:
+        positions_m: the positions (m), (n,).
+        theta: the shaped parameters per position, (n, p): a start for a tuner.
+        history: S(θ) at the start and at every step's trial point, (steps + 1, n).
+        margin_term: the objective's margin term at ``theta``, (n,).
+        seconds: wall time of the call (s), compilation included where its program is new
+            (steps in another block of ten, other shapes).
+    """
+
+    positions_m: Float[Array, " n"]
+    theta: Float[Array, "n p"]
+    history: Float[Array, "steps n"]
+    margin_term: Float[Array, " n"]
+    seconds: float = eqx.field(static=True)
+
+
+def _shaping_values(par, objective, drive, y, theta, weights):
+    """S = J_m − w·θ, its gradient and its Hessian at every position (traced; no simulation)."""
+    def one(th, p):
+        def f(t):
+            v, g = jax.value_and_grad(lambda q: objective.margin_term(
+                par.to_controller(q), drive, p) - weights @ q)(t)
+            return g, (v, g)
+
+        H, (v, g) = jax.jacfwd(f, has_aux=True)(th)
+        return v, g, H
+
+    return jax.vmap(one)(theta, y)
+
+
+@eqx.filter_jit
+def _run_shaping(par, objective, drive, y, theta, weights, steps, radius, shrink, max_radius,
+                 rows: int):
+    """``steps`` (traced, at most ``rows`` − 1) trust-region steps on S with its exact Hessian,
+    one compiled loop; returns θ, J_m at θ and S at the start and every trial, (rows, n)."""
+    j, g, H = _shaping_values(par, objective, drive, y, theta, weights)
+    delta = jnp.full(y.shape, radius)
+    hist = jnp.zeros((rows,) + y.shape, j.dtype).at[0].set(j)
+
+    def body(k, carry):
+        theta, j, g, H, delta, hist = carry
+        step, pred = jax.vmap(_trust_region_step)(g, H, delta)
+        j_t, g_t, H_t = _shaping_values(par, objective, drive, y, theta + step, weights)
+        theta, j, g, H, delta, _ = _accept(theta, j, g, H, delta, step, pred, j_t, g_t, H_t,
+                                           shrink, max_radius, True, False)
+        return theta, j, g, H, delta, hist.at[k + 1].set(j_t)
+
+    theta, *_, hist = jax.lax.fori_loop(0, steps, body, (theta, j, g, H, delta, hist))
+    margins = jax.vmap(lambda th, p: objective.margin_term(par.to_controller(th), drive, p))(
+        theta, y)
+    return theta, margins, hist
+
+
+def shape_loops(
+    parameterisation: AbstractParameterisation,
+    objective: Objective,
+    drive: BallScrewDrive,
+    positions_m: Float[ArrayLike, " n"],
+    start: AbstractController | Float[ArrayLike, " p"] | Float[ArrayLike, "n p"],
+    *,
+    steps: int = 20,
+    gain_weight: float = 0.03,
+    radius: float = 0.3,
+    max_radius: float = 5.0,
+    shrink: float = 0.25,
+) -> LoopShaping:
+    r"""Move the feedback gains of a start to the highest the margin penalties allow, without a
+    simulation: a start for :func:`tune_newton` (classical loop shaping, paper Sec. 4.2: as
+    much loop gain as the stability margins admit).  At every position, trust-region Newton
+    steps with the exact Hessian (as :func:`tune_newton`'s) minimise
+
+        S(θ) = J_m(θ, Y) − w Σ_{k ∈ {k_p, k_v, k_i}} θ_k,
+
+    J_m the objective's margin term (:meth:`fdjax.Objective.margin_term`, from the open loops
+    on the frequency grid) and θ_k the gains' logarithms: a design settles where the
+    penalties' slope meets w, a little inside the margin requirements, its gains lowered where
+    the start violates them and raised where it has room.  The filters move with the gains;
+    the feed-forward gains, absent from S, stay.  No step runs the simulation, so the tracking
+    error plays no part: the tuner that follows weighs it.
+
+    On the reference drive's 12-parameter problem (``benchmarks/tuning.py``: the reference
+    controller with k_v halved, six positions), 20 steps bring J from 9.8–285 to 1.8–5.6 in
+    about 1.2 s, and :func:`tune_newton` with the exact Hessian at the start only
+    (``hessian_every`` above ``steps``) then reaches the adaptive simplex's best J at every
+    position with 26× fewer simulations than the simplex and 9.8× less wall time, shaping
+    included; from the start itself the same tuner stops above it at three positions.
+
+    Args:
+        parameterisation, objective, drive, positions_m, start: as :func:`fdjax.tune_newton`.
+            The parameterisation must name ``kp``, ``kv`` and ``ki`` among its parameters
+            (:class:`fdjax.DoubleLoopParameterisation`).
+        steps: trust-region steps (≥ 1).
+        gain_weight: w (> 0), the pull on each gain's logarithm against the penalties.
+        radius, max_radius, shrink: the trust region's, as :func:`fdjax.tune_newton`'s.
+
+    Returns:
+        A :class:`fdjax.LoopShaping`.
+    """
+    fn = "shape_loops"
+    pos, objective = _check_common(fn, parameterisation, objective, drive, positions_m, steps,
+                                   1)
+    for name, value, ok, want in (
+            ("gain_weight", gain_weight, lambda v: v > 0, "a positive number"),
+            ("radius", radius, lambda v: v > 0, "a positive number"),
+            ("max_radius", max_radius, lambda v: v >= radius, f"a number ≥ radius = {radius!r}"),
+            ("shrink", shrink, lambda v: 0 < v < 1, "a number in (0, 1)")):
+        _checks.static_number(value, f"{fn}({name}=...)", ok, want)
+    names = parameterisation.names
+    missing = [n for n in _SHAPED_GAINS if n not in names]
+    if missing:
+        raise ValueError(f"`{fn}(parameterisation=...)` must have the gains "
+                         f"{', '.join(_SHAPED_GAINS)} among its parameters, got "
+                         f"{type(parameterisation).__name__} with {', '.join(names)}")
+    weights = jnp.asarray([float(gain_weight) if n in _SHAPED_GAINS else 0.0 for n in names])
+    theta = jnp.asarray(_start(fn, parameterisation, start, pos.size))
+    y = jnp.asarray(pos)
+    # the history's rows: one program for every count of steps in a block of ten
+    rows = -(-steps // _DEFAULT_CHUNK) * _DEFAULT_CHUNK + 1
+    t0 = time.perf_counter()
+    th, margins, hist = jax.block_until_ready(_run_shaping(
+        parameterisation, objective, drive, y, theta, weights, jnp.asarray(steps),
+        jnp.asarray(float(radius)), jnp.asarray(float(shrink)), jnp.asarray(float(max_radius)),
+        rows))
+    return LoopShaping(y, th, hist[:steps + 1], margins, time.perf_counter() - t0)
