@@ -18,7 +18,7 @@ j_max=400.0, cycles=1)``, margins on 400 log-spaced frequencies 5–3900 Hz, twi
    whose steps run in compiled loops; one evaluation of J, its gradient and its Hessian per
    step; a warm-up call compiles every program the main call runs), and the same with the
    exact Hessian every 8 steps and SR1 updates between (``hessian_every=8``, ``--sr1-steps``
-   steps).  And the same tuner after 20 steps of ``fdjax.shape_loops`` (the gains raised as far
+   steps).  And the same tuner after 30 steps of ``fdjax.shape_loops`` (the gains raised as far
    as the margin penalties allow, from the open loops alone: no simulation; timed after a
    warm-up, its seconds added to the tuner's), with the exact Hessian at the start only and
    SR1 updates after (``--shaped-steps`` steps).
@@ -75,7 +75,7 @@ LEARNING_RATE = 0.02
 SIMPLEX_STEP = 0.1
 SIMS_PER_GRADIENT_STEP = 2  # one forward and one reverse pass per position
 HESSIAN_EVERY = 8  # the quasi-Newton variant: the exact Hessian every 8 steps, SR1 between
-SHAPE_STEPS = 20  # fdjax.shape_loops steps (no simulation) before the shaped variant's Newton
+SHAPE_STEPS = 30  # fdjax.shape_loops steps (no simulation) before the shaped variant's Newton
 NEWTON_CHUNK = 10  # tune_newton's default: steps per compiled call, rounded up to whole cycles
 SIMPLEX_CHUNK = 500  # tune_simplex: evaluations per compiled call (a divisor of --maxfev)
 TARGETS = {"simulations_ratio": 20.0, "wall_time_ratio": 10.0, "six_tunings_s": 60.0}

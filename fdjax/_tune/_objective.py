@@ -205,6 +205,23 @@ class Objective(eqx.Module):
         plant, method = self._checked("Objective.margin_term", controller, drive, position_m)
         return self.margin_weight * self._penalty(controller, plant, method)
 
+    def _barrier(self, g):
+        """The growth-rate barrier, unweighted: softplus((g − g_max)/g_w)²."""
+        g_w = max(abs(self.max_growth_rate), 1.0)
+        return jax.nn.softplus((g - self.max_growth_rate) / g_w) ** 2
+
+    def unsimulated_term(self, controller: AbstractController, drive: BallScrewDrive,
+                         position_m: Float[ArrayLike, ""]) -> Float[Array, ""]:
+        r"""The margin term plus the growth-rate barrier, w_m Σ_breaks P_margin(L_b) +
+        w_s softplus((g − g_max)/g_w)²: the part of J that needs no run of the loop (the open
+        loops on the frequency grid and the sampled closed loop's least stable pole, as the
+        run's own barrier takes it)."""
+        plant, method = self._checked("Objective.unsimulated_term", controller, drive,
+                                      position_m)
+        g = method.frozen_growth(controller, plant, self.servo)
+        return (self.margin_weight * self._penalty(controller, plant, method)
+                + self.stability_weight * self._barrier(g))
+
     def __call__(self, controller: AbstractController, drive: BallScrewDrive,
                  position_m: Float[ArrayLike, ""]) -> ObjectiveTerms:
         """The terms of J at table position ``position_m`` (m)."""
@@ -226,8 +243,7 @@ class Objective(eqx.Module):
                        duration=self.duration, error_bound=self.error_bound_m, throw=False)
         rms = sim.rms_error(self.output)
         g = sim.growth_rate
-        g_w = max(abs(self.max_growth_rate), 1.0)
-        barrier = jax.nn.softplus((g - self.max_growth_rate) / g_w) ** 2
+        barrier = self._barrier(g)
         i_peak = jnp.max(jnp.abs(sim.current))
         i_max = self.servo.current_limit if self.current_limit_a is None else self.current_limit_a
         ok = (g < 0) & (sim.result == RESULTS.successful)
