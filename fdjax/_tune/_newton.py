@@ -280,6 +280,15 @@ def _run_gradient_steps(par, objective, drive, y, st, steps, shrink, max_radius,
     return st, hist
 
 
+def _check_trust(fn, radius, max_radius, shrink):
+    """The trust region's settings of ``fn``, each named in its error."""
+    for name, value, ok, want in (
+            ("radius", radius, lambda v: v > 0, "a positive number"),
+            ("max_radius", max_radius, lambda v: v >= radius, f"a number ≥ radius = {radius!r}"),
+            ("shrink", shrink, lambda v: 0 < v < 1, "a number in (0, 1)")):
+        _checks.static_number(value, f"{fn}({name}=...)", ok, want)
+
+
 def tune_newton(
     parameterisation: AbstractParameterisation,
     objective: Objective,
@@ -360,11 +369,7 @@ def tune_newton(
     fn = "tune_newton"
     pos, objective = _check_common(fn, parameterisation, objective, drive, positions_m, steps,
                                    chunk)
-    for name, value, ok, want in (
-            ("radius", radius, lambda v: v > 0, "a positive number"),
-            ("max_radius", max_radius, lambda v: v >= radius, f"a number ≥ radius = {radius!r}"),
-            ("shrink", shrink, lambda v: 0 < v < 1, "a number in (0, 1)")):
-        _checks.static_number(value, f"{fn}({name}=...)", ok, want)
+    _check_trust(fn, radius, max_radius, shrink)
     hessian_every = _checks.static_int(hessian_every, f"{fn}(hessian_every=...)", 1)
     if hessian not in ("full", "margins"):
         raise ValueError(f"`{fn}(hessian=...)` must be 'full' or 'margins', got {hessian!r}")
@@ -554,12 +559,9 @@ def shape_loops(
     fn = "shape_loops"
     pos, objective = _check_common(fn, parameterisation, objective, drive, positions_m, steps,
                                    1)
-    for name, value, ok, want in (
-            ("gain_weight", gain_weight, lambda v: v > 0, "a positive number"),
-            ("radius", radius, lambda v: v > 0, "a positive number"),
-            ("max_radius", max_radius, lambda v: v >= radius, f"a number ≥ radius = {radius!r}"),
-            ("shrink", shrink, lambda v: 0 < v < 1, "a number in (0, 1)")):
-        _checks.static_number(value, f"{fn}({name}=...)", ok, want)
+    _checks.static_number(gain_weight, f"{fn}(gain_weight=...)", lambda v: v > 0,
+                          "a positive number")
+    _check_trust(fn, radius, max_radius, shrink)
     names = parameterisation.names
     missing = [n for n in _SHAPED_GAINS if n not in names]
     if missing:
