@@ -13,8 +13,8 @@ steps cannot break.
   one MCM per position); :func:`descend`, the optax loop they share.
 * ``_newton``: :func:`tune_newton`, trust-region Newton steps with the exact Hessian per
   position in one ``vmap`` (:func:`trust_region_step`, the exact subproblem), and
-  :func:`shape_loops`, the same steps on the margin term alone: a start found without
-  simulation.
+  :func:`shape_loops`, the same steps on the part of the objective that needs no run (the
+  margin term and the poles' barrier): a start found without simulation.
 * ``_simplex``: :func:`tune_simplex`, the adaptive Nelder–Mead simplex per position in one
   ``vmap`` (a derivative-free search for the basin that the gradient then refines).
 * ``_end_to_end``: :func:`train_schedule`, the network trained against the objective itself.
