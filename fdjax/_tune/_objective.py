@@ -10,7 +10,8 @@ of the reference motion and the open loops on the unit circle:
                        + w_c softplus((max|i| − i_max)/(0.05 i_max))²  (motor current),
 
 (:meth:`Objective.margin_term` is the second line, from the open loops alone;
-:meth:`Objective.simulated_term` the rest, from one run), with e_rms the RMS error at the scale
+:meth:`Objective.simulated_term` the rest, from one run; :meth:`Objective.unsimulated_term`
+the second and third lines, without a run), with e_rms the RMS error at the scale
 (or the tool point), P_margin the smooth penalties of :func:`margin_penalty` on every break
 point of the loop (plant input, speed feedback, scale), g the growth rate of the sampled
 closed loop's least stable pole (s = ln z / T; negative when stable), max|i| the peak
