@@ -75,7 +75,8 @@ LEARNING_RATE = 0.02
 SIMPLEX_STEP = 0.1
 SIMS_PER_GRADIENT_STEP = 2  # one forward and one reverse pass per position
 HESSIAN_EVERY = 8  # the quasi-Newton variant: the exact Hessian every 8 steps, SR1 between
-SHAPE_STEPS = 30  # fdjax.shape_loops steps (no simulation) before the shaped variant's Newton
+SHAPE_STEPS = 40  # fdjax.shape_loops steps (no simulation) before the shaped variant's Newton
+SHAPE_EVERY = 2  # fdjax.shape_loops: S's exact Hessian every 2 steps, SR1 between
 NEWTON_CHUNK = 10  # tune_newton's default: steps per compiled call, rounded up to whole cycles
 SIMPLEX_CHUNK = 500  # tune_simplex: evaluations per compiled call (a divisor of --maxfev)
 TARGETS = {"simulations_ratio": 20.0, "wall_time_ratio": 10.0, "six_tunings_s": 60.0}
@@ -182,7 +183,8 @@ def gradient_local(par, obj, drive, positions, start, steps, method="adam"):
 
 
 def newton_local(par, obj, drive, positions, start, steps, every=1, radius=0.3,
-                 max_radius=5.0, shrink=0.25, hessian="full", shape_steps=0):
+                 max_radius=5.0, shrink=0.25, hessian="full", shape_steps=0,
+                 chunk=NEWTON_CHUNK):
     """fdjax.tune_newton: one evaluation of J with its gradient and Hessian per step and
     position (with ``hessian="margins"``: J with its gradient, and the Hessian of the margin
     term alone, which needs no simulation).  A warm-up call of 2 steps compiles the programs;
@@ -193,8 +195,10 @@ def newton_local(par, obj, drive, positions, start, steps, every=1, radius=0.3,
     if shape_steps:
         # fdjax.shape_loops first (no simulation): warmed up, then timed; its seconds count in
         # the tuner's wall time
-        fdjax.shape_loops(par, obj, drive, positions, start, steps=shape_steps)
-        shaped = fdjax.shape_loops(par, obj, drive, positions, start, steps=shape_steps)
+        fdjax.shape_loops(par, obj, drive, positions, start, steps=shape_steps,
+                          hessian_every=SHAPE_EVERY)
+        shaped = fdjax.shape_loops(par, obj, drive, positions, start, steps=shape_steps,
+                                   hessian_every=SHAPE_EVERY)
         start, shape_s = shaped.theta, shaped.seconds
     t0 = time.perf_counter()
     # the warm-up compiles the programs the main call runs (their step counts are traced):
@@ -203,12 +207,12 @@ def newton_local(par, obj, drive, positions, start, steps, every=1, radius=0.3,
     # Hessian once in a longer run than the main call's (at the start only), gradient steps
     warm_steps = every + 1 if every <= steps else NEWTON_CHUNK + 1
     warm = fdjax.tune_newton(par, obj, drive, positions, start, steps=warm_steps,
-                             hessian_every=every, **trust)
+                             hessian_every=every, chunk=chunk, **trust)
     jax.block_until_ready(warm.history)
     warm_s = time.perf_counter() - t0
     t0 = time.perf_counter()
     r = fdjax.tune_newton(par, obj, drive, positions, start, steps=steps, hessian_every=every,
-                          **trust)
+                          chunk=chunk, **trust)
     jax.block_until_ready((r.history, r.terms.total))
     wall_s = time.perf_counter() - t0
     terms_s = final_terms_seconds(par, obj, drive, r)
@@ -224,14 +228,16 @@ def newton_local(par, obj, drive, positions, start, steps, every=1, radius=0.3,
     sims = np.where(with_h, 2 + 2 * n_par, 2)[:, None] * np.ones((1, h.shape[1]), int)
     return {
         "steps": int(steps), "tuner": "tune_newton",
-        "chunk": -(-NEWTON_CHUNK // every) * every if every <= NEWTON_CHUNK else NEWTON_CHUNK,
+        "chunk": -(-chunk // every) * every if every <= chunk else chunk,
         "optimiser": "trust-region Newton, exact Hessian"
                      + (" of the margin term every step, SR1 for the rest of J"
                         if hessian == "margins" else " every step" if every == 1 else every_text)
                      + f" (radius {radius:g}, max {max_radius:g}, shrink {shrink:g})"
                      + (f", after {shape_steps} steps of fdjax.shape_loops (no simulation; "
+                        f"its exact Hessian every {SHAPE_EVERY} steps, SR1 between; "
                         f"{shape_s:.2f} s, counted in the steps' time)" if shape_steps else ""),
-        "shape_steps": int(shape_steps), "shape_s": shape_s,
+        "shape_steps": int(shape_steps), "shape_hessian_every": SHAPE_EVERY, "shape_s": shape_s,
+        "tune_chunk": int(chunk),
         "trust_region": trust,
         "hessian_every": int(every), "sims_rows": sims,
         "evaluations": np.ones_like(h, dtype=int),
@@ -669,8 +675,10 @@ def main():
                                       ("newton_sr1", args.sr1_steps, HESSIAN_EVERY, 0),
                                       ("shaped_sr1", args.shaped_steps, args.shaped_steps + 1,
                                        SHAPE_STEPS)):
+        # the shaped variant's SR1 steps in one compiled call (chunk = its steps)
         grads[name] = newton_local(par, obj, drive, positions, start, steps, every,
-                                   shape_steps=shape)
+                                   shape_steps=shape,
+                                   chunk=steps if shape else NEWTON_CHUNK)
         print(name, {k: v for k, v in grads[name].items()
                      if not isinstance(v, np.ndarray)}, flush=True)
     nm = derivative_free(par, obj, drive, positions, start, args.maxfev)
@@ -694,9 +702,11 @@ def main():
                 th = start
                 if grad["shape_steps"]:
                     th = fdjax.shape_loops(par, obj, drive, positions, start,
-                                           steps=grad["shape_steps"]).theta
+                                           steps=grad["shape_steps"],
+                                           hessian_every=grad["shape_hessian_every"]).theta
                 r = fdjax.tune_newton(par, obj, drive, positions, th, steps=max(k, 1),
-                                      hessian_every=grad["hessian_every"])
+                                      hessian_every=grad["hessian_every"],
+                                      chunk=grad["tune_chunk"])
                 return r.history, r.terms.total
 
             t_run, t_runs = median_time(run, 3, warmup=False)
