@@ -18,10 +18,11 @@ j_max=400.0, cycles=1)``, margins on 400 log-spaced frequencies 5–3900 Hz, twi
    whose steps run in compiled loops; one evaluation of J, its gradient and its Hessian per
    step; a warm-up call compiles every program the main call runs), and the same with the
    exact Hessian every 8 steps and SR1 updates between (``hessian_every=8``, ``--sr1-steps``
-   steps).  And the same tuner after 30 steps of ``fdjax.shape_loops`` (the gains raised as far
-   as the margin penalties allow, from the open loops alone: no simulation; timed after a
-   warm-up, its seconds added to the tuner's), with the exact Hessian at the start only and
-   SR1 updates after (``--shaped-steps`` steps).
+   steps).  And the same tuner after 40 steps of ``fdjax.shape_loops`` (the gains raised as far
+   as the margin penalties and the poles' barrier allow, no simulation; S's exact Hessian every
+   second step, SR1 between; timed after a warm-up, its seconds added to the tuner's), with the
+   exact Hessian at the start only and SR1 updates after (``--shaped-steps`` steps, in one
+   compiled call: ``chunk`` = its steps).
 2. ``derivative_free``: ``scipy.optimize.minimize(method="Nelder-Mead", adaptive=True)`` on θ
    per position, one position after the other, J a jitted function of (θ, Y) (compiled once,
    outside the timing), initial simplex θ0 + 0.1·e_k, at most ``--maxfev`` evaluations.
@@ -477,8 +478,8 @@ METHODS = {"adam": f"Adam({LEARNING_RATE})", "lbfgs": "L-BFGS (optax.lbfgs, zoom
            "newton_sr1": "trust-region Newton, exact Hessian every 8 steps, SR1 between "
                          "(fdjax.tune_newton(hessian_every=8))",
            "shaped_sr1": f"loop shaping without simulation ({SHAPE_STEPS} steps of "
-                         "fdjax.shape_loops), then trust-region Newton with the exact Hessian "
-                         "at the start only, SR1 after"}
+                         f"fdjax.shape_loops, hessian_every={SHAPE_EVERY}), then trust-region "
+                         "Newton with the exact Hessian at the start only, SR1 after"}
 
 
 def markdown(result):

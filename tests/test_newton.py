@@ -364,6 +364,8 @@ def test_shape_loops_meets_the_margins_without_a_simulation(monkeypatch):
     ({"gain_weight": 0.0},
      r"`shape_loops\(gain_weight=\.\.\.\)` must be a positive number, got 0.0"),
     ({"shrink": 0.0}, r"`shape_loops\(shrink=\.\.\.\)` must be a number in \(0, 1\), got 0.0"),
+    ({"hessian_every": 0},
+     r"`shape_loops\(hessian_every=\.\.\.\)` must be an integer at least 1, got 0"),
 ])
 def test_shape_loops_names_its_arguments(kwargs, match):
     drive, start, par, obj = _problem()
